@@ -1,0 +1,342 @@
+"""Differentiable rasterization of 3D Gaussians (EWA splatting, Kerbl et al. 2023).
+
+One interface, :func:`rasterize`, three backends:
+
+- ``"torch"``: pure PyTorch, tile by tile (16x16), each tile checkpointed so memory stays bounded by
+  one tile's ``pixels x Gaussians``; the reference the others are tested against;
+- ``"native"``: the same compositing as a C/OpenMP kernel with the analytic backward of the reference
+  CUDA code (``csrc/raster_cpu.c``), the default on CPU;
+- ``"gsplat"``: ``gsplat.rasterization`` on CUDA (optional dependency), the default on GPU.
+
+The torch and native backends share the projection (:func:`project`), spherical-harmonic colours
+(:func:`eval_sh`) and tile binning (:func:`bin_tiles`), all differentiable PyTorch.
+
+Conventions: OpenCV camera (see :mod:`wast3d.cameras`); pixel centres at (i + 0.5, j + 0.5); the 2D
+covariance is dilated by 0.3 px^2 (the reference low-pass filter); a Gaussian contributes to a pixel
+when ``alpha = min(0.99, o exp(-sigma)) >= 1/255``; compositing stops before transmittance falls
+below 1e-4. Outputs: ``rgb`` [H, W, 3] (composited on ``background``), ``alpha`` [H, W] and ``depth``
+[H, W], the expected camera-space z of the visible Gaussians (``sum w_i z_i / alpha``, 0 where
+alpha = 0).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import torch
+from torch.utils.checkpoint import checkpoint
+
+from .cameras import Camera
+from .gaussians import GaussianScene, quat_to_rotmat
+
+log = logging.getLogger(__name__)
+
+TILE = 16
+EPS2D = 0.3
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real spherical harmonics of the reference 3DGS code.
+
+    sh: [N, K, 3] (K >= (degree+1)^2), dirs: [N, 3] unit view directions -> [N, 3] (before +0.5).
+    """
+    res = SH_C0 * sh[:, 0]
+    if degree < 1:
+        return res
+    x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
+    res = res - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+    if degree < 2:
+        return res
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+    res = (res + SH_C2[0] * xy * sh[:, 4] + SH_C2[1] * yz * sh[:, 5] + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6]
+           + SH_C2[3] * xz * sh[:, 7] + SH_C2[4] * (xx - yy) * sh[:, 8])
+    if degree < 3:
+        return res
+    return (res + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9] + SH_C3[1] * xy * z * sh[:, 10]
+            + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11] + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
+            + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13] + SH_C3[5] * z * (xx - yy) * sh[:, 14]
+            + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15])
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space quantities; tensors of the visible Gaussians only.
+
+    ids: [V] indices into the scene; means2d: [V, 2]; conics: [V, 3] (a, b, c) of the inverse 2D
+    covariance; depths: [V] camera z; radii: [V] pixel radius of the alpha >= 1/255 ellipse's box;
+    opacities: [V].
+    """
+
+    ids: torch.Tensor
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    depths: torch.Tensor
+    radii: torch.Tensor
+    opacities: torch.Tensor
+
+
+def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+            cam: Camera) -> Projected:
+    """EWA projection: ``Sigma2d = J W Sigma W^T J^T + 0.3 I`` with the perspective Jacobian J.
+
+    means: [N, 3], quats: [N, 4], scales: [N, 3], opacities: [N]. The Jacobian uses the mean clamped
+    to 1.3x the field of view (as the reference) so that Gaussians far outside do not blow up.
+    Culled: behind ``near``, beyond ``far``, degenerate 2D covariance, opacity < 1/255, or a box that
+    misses the image.
+    """
+    dt = means.dtype
+    V = cam.world_to_cam.to(device=means.device, dtype=dt)
+    R, t = V[:3, :3], V[:3, 3]
+    pc = means @ R.T + t
+    z = pc[:, 2]
+    keep = (z > cam.near) & (z < cam.far) & (opacities >= ALPHA_MIN)
+    ids = keep.nonzero().squeeze(1)
+    pc, z = pc[ids], z[ids]
+    x, y = pc[:, 0], pc[:, 1]
+    fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+    tanx, tany = 0.5 * cam.width / fx, 0.5 * cam.height / fy
+    limx_pos, limx_neg = (cam.width - cx) / fx + 0.3 * tanx, cx / fx + 0.3 * tanx
+    limy_pos, limy_neg = (cam.height - cy) / fy + 0.3 * tany, cy / fy + 0.3 * tany
+    tx = z * (x / z).clamp(-limx_neg, limx_pos)
+    ty = z * (y / z).clamp(-limy_neg, limy_pos)
+    zero = torch.zeros_like(z)
+    J = torch.stack([fx / z, zero, -fx * tx / z**2, zero, fy / z, -fy * ty / z**2], -1).reshape(-1, 2, 3)
+    Rg = quat_to_rotmat(quats[ids])
+    M = R @ Rg * scales[ids][:, None, :]  # camera-frame R_g S
+    JM = J @ M
+    cov2 = JM @ JM.transpose(1, 2)
+    a = cov2[:, 0, 0] + EPS2D
+    b = cov2[:, 0, 1]
+    c = cov2[:, 1, 1] + EPS2D
+    det = a * c - b * b
+    op = opacities[ids]
+    mx = fx * x / z + cx
+    my = fy * y / z + cy
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        lam = mid + (mid * mid - det).clamp_min(0.1).sqrt()
+        # extent where o * exp(-d^2 / (2 lam)) >= 1/255 along the major axis
+        k = (2 * torch.log((op * 255.0).clamp_min(1.0))).sqrt()
+        radii = torch.ceil(k * lam.sqrt())
+        ok = (det > 0) & (radii > 0) & (mx + radii > 0) & (mx - radii < cam.width) & \
+             (my + radii > 0) & (my - radii < cam.height)
+    sel = ok.nonzero().squeeze(1)
+    det = det[sel]
+    conics = torch.stack([c[sel] / det, -b[sel] / det, a[sel] / det], -1)
+    return Projected(ids[sel], torch.stack([mx[sel], my[sel]], -1), conics, z[sel], radii[sel], op[sel])
+
+
+@torch.no_grad()
+def bin_tiles(p: Projected, width: int, height: int, tile: int = TILE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sort (tile, Gaussian) intersections by tile, then depth.
+
+    Returns isect_gid [M] int32 (positions into ``p``'s arrays) and tile_off [n_tiles + 1] int64.
+    """
+    tx_n, ty_n = (width + tile - 1) // tile, (height + tile - 1) // tile
+    n_tiles = tx_n * ty_n
+    dev = p.means2d.device
+    if p.ids.numel() == 0:
+        return torch.zeros(0, dtype=torch.int32, device=dev), torch.zeros(n_tiles + 1, dtype=torch.int64, device=dev)
+    m, r = p.means2d.detach(), p.radii
+    # pixels whose centre (i + .5) lies in [m - r, m + r]
+    px0 = torch.ceil(m[:, 0] - r - 0.5).clamp(0, width - 1).long()
+    px1 = torch.floor(m[:, 0] + r - 0.5).clamp(0, width - 1).long()
+    py0 = torch.ceil(m[:, 1] - r - 0.5).clamp(0, height - 1).long()
+    py1 = torch.floor(m[:, 1] + r - 0.5).clamp(0, height - 1).long()
+    tx0, tx1, ty0, ty1 = px0 // tile, px1 // tile, py0 // tile, py1 // tile
+    w = (tx1 - tx0 + 1).clamp_min(0)
+    counts = w * (ty1 - ty0 + 1).clamp_min(0)
+    total = int(counts.sum())
+    g = torch.repeat_interleave(torch.arange(len(counts), device=dev), counts)
+    start = torch.cumsum(counts, 0) - counts
+    off = torch.arange(total, device=dev) - start[g]
+    tid = (ty0[g] + off // w[g]) * tx_n + tx0[g] + off % w[g]
+    depth_rank = torch.empty_like(g[: len(counts)])
+    depth_rank[torch.argsort(p.depths.detach())] = torch.arange(len(counts), device=dev)
+    key = tid * len(counts) + depth_rank[g]
+    order = torch.argsort(key)
+    gid = g[order].to(torch.int32)
+    tile_off = torch.zeros(n_tiles + 1, dtype=torch.int64, device=dev)
+    tile_off[1:] = torch.cumsum(torch.bincount(tid, minlength=n_tiles), 0)
+    return gid, tile_off
+
+
+# ----------------------------------------------------------------------------------------------
+# compositing backends: (means2d [V,2], conics [V,3], colors [V,C], opac [V], bins) -> (out [H,W,C], T [H,W])
+# ----------------------------------------------------------------------------------------------
+
+
+def _composite_tile(means2d, conics, colors, opac, pix):
+    """One tile in PyTorch. pix: [P, 2] pixel centres; the others are the tile's Gaussians, front first."""
+    d = means2d[None, :, :] - pix[:, None, :]  # [P, n, 2]
+    dx, dy = d[..., 0], d[..., 1]
+    sigma = 0.5 * (conics[:, 0] * dx * dx + conics[:, 2] * dy * dy) + conics[:, 1] * dx * dy
+    # clamp the exponent: exp of large arguments is slow (denormals) and the result is skipped anyway
+    alpha = (opac * torch.exp(-sigma.clamp(0.0, 12.0))).clamp_max(ALPHA_MAX)
+    alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+    log1m = torch.log1p(-alpha)
+    logT_incl = torch.cumsum(log1m, dim=1)
+    # the forward stops before the first Gaussian that brings T below T_MIN; T is non-increasing,
+    # so "included" is exactly "inclusive transmittance >= T_MIN"
+    inc = logT_incl >= math.log(T_MIN)
+    logT_excl = (logT_incl - log1m).clamp_min(-30.0)
+    w = alpha * torch.exp(logT_excl) * inc
+    out = w @ colors
+    T = torch.exp((log1m * inc).sum(1).clamp_min(-30.0))
+    return out, T
+
+
+def composite_torch(means2d, conics, colors, opac, gid, tile_off, width, height, tile=TILE):
+    C = colors.shape[1]
+    out = means2d.new_zeros(height, width, C)
+    T = means2d.new_ones(height, width)
+    tx_n = (width + tile - 1) // tile
+    offs = tile_off.tolist()
+    need_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means2d, conics, colors, opac))
+    for t in range(len(offs) - 1):
+        s, e = offs[t], offs[t + 1]
+        if s == e:
+            continue
+        x0, y0 = (t % tx_n) * tile, (t // tx_n) * tile
+        x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+        ys, xs = torch.meshgrid(torch.arange(y0, y1, device=means2d.device, dtype=means2d.dtype) + 0.5,
+                                torch.arange(x0, x1, device=means2d.device, dtype=means2d.dtype) + 0.5, indexing="ij")
+        pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+        ids = gid[s:e].long()
+        args = (means2d[ids], conics[ids], colors[ids], opac[ids], pix)
+        o, tt = checkpoint(_composite_tile, *args, use_reentrant=False) if need_grad else _composite_tile(*args)
+        out[y0:y1, x0:x1] = o.reshape(y1 - y0, x1 - x0, C)
+        T[y0:y1, x0:x1] = tt.reshape(y1 - y0, x1 - x0)
+    return out, T
+
+
+class _NativeComposite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opac, gid, tile_off, width, height, tile):
+        from . import _native
+
+        lib = _native.load("raster_cpu")
+        sfx = "_f64" if means2d.dtype == torch.float64 else "_f32"
+        tensors = [x.detach().contiguous() for x in (means2d, conics, colors, opac)]
+        gid, tile_off = gid.contiguous(), tile_off.contiguous()
+        C = colors.shape[1]
+        out = means2d.new_empty(height, width, C)
+        T = means2d.new_empty(height, width)
+        last = torch.empty(height, width, dtype=torch.int32)
+        P = _native.ptr
+        getattr(lib, "raster_fwd" + sfx)(*[P(x) for x in tensors], P(gid), P(tile_off), width, height, tile, C,
+                                         torch.get_num_threads(), P(out), P(T), P(last))
+        ctx.save_for_backward(*tensors, gid, tile_off, T, last)
+        ctx.dims = (width, height, tile, C, sfx)
+        return out, T
+
+    @staticmethod
+    def backward(ctx, g_out, g_T):
+        from . import _native
+
+        lib = _native.load("raster_cpu")
+        means2d, conics, colors, opac, gid, tile_off, T, last = ctx.saved_tensors
+        width, height, tile, C, sfx = ctx.dims
+        M = gid.numel()
+        gm = means2d.new_zeros(M, 2)
+        gc = means2d.new_zeros(M, 3)
+        gcol = means2d.new_zeros(M, C)
+        go = means2d.new_zeros(M)
+        g_out = (g_out if g_out is not None else torch.zeros_like(T)[..., None].expand(-1, -1, C)).contiguous()
+        g_T = (g_T if g_T is not None else torch.zeros_like(T)).contiguous()
+        P = _native.ptr
+        getattr(lib, "raster_bwd" + sfx)(P(means2d), P(conics), P(colors), P(opac), P(gid), P(tile_off), width,
+                                         height, tile, C, torch.get_num_threads(), P(T), P(last), P(g_out), P(g_T),
+                                         P(gm), P(gc), P(gcol), P(go))
+        idx = gid.long()
+        V = means2d.shape[0]
+        red = lambda g, *shape: means2d.new_zeros(V, *shape).index_add_(0, idx, g)  # noqa: E731
+        return red(gm, 2), red(gc, 3), red(gcol, C), red(go), None, None, None, None, None
+
+
+def composite_native(means2d, conics, colors, opac, gid, tile_off, width, height, tile=TILE):
+    if colors.shape[1] > 16:
+        raise ValueError("native compositor supports at most 16 channels")
+    return _NativeComposite.apply(means2d, conics, colors, opac, gid, tile_off, width, height, tile)
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def default_backend(device: torch.device) -> str:
+    if device.type == "cuda":
+        try:
+            import gsplat  # noqa: F401
+
+            return "gsplat"
+        except ImportError:
+            log.warning("gsplat not installed: rendering on CUDA with the PyTorch backend (slow)")
+            return "torch"
+    from . import _native
+
+    return "native" if _native.load("raster_cpu") is not None else "torch"
+
+
+def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
+              backend: str | None = None, colors: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Render ``scene`` from ``cam``.
+
+    Returns ``rgb`` [H, W, 3], ``alpha`` [H, W], ``depth`` [H, W] (expected z), and for densification
+    ``means2d`` [V, 2] (retains grad), ``visible_ids`` [V] and ``radii`` [V].
+    ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
+    scene's degree.
+    """
+    backend = backend or default_backend(scene.device)
+    deg = scene.sh_degree if sh_degree is None else min(sh_degree, scene.sh_degree)
+    bg = torch.as_tensor(background, dtype=scene.dtype, device=scene.device)
+    if backend == "gsplat":
+        return _rasterize_gsplat(scene, cam, bg, deg, colors)
+    p = project(scene.means, scene.quats, scene.scales, scene.opacities, cam)
+    if colors is None:
+        dirs = scene.means[p.ids] - cam.center.to(scene.means)
+        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        rgb = (eval_sh(scene.sh[p.ids], dirs, deg) + 0.5).clamp_min(0.0)
+    else:
+        rgb = colors[p.ids]
+    feats = torch.cat([rgb, p.depths[:, None]], dim=1)
+    gid, tile_off = bin_tiles(p, cam.width, cam.height)
+    means2d = p.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    fn = {"torch": composite_torch, "native": composite_native}[backend]
+    out, T = fn(means2d, p.conics, feats, p.opacities, gid, tile_off, cam.width, cam.height)
+    alpha = 1 - T
+    image = out[..., :3] + T[..., None] * bg
+    depth = torch.where(alpha > 1e-6, out[..., 3] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+    return {"rgb": image, "alpha": alpha, "depth": depth, "means2d": means2d, "visible_ids": p.ids,
+            "radii": p.radii}
+
+
+def _rasterize_gsplat(scene, cam, bg, deg, colors):  # pragma: no cover - needs CUDA
+    from gsplat import rasterization
+
+    viewmat = cam.world_to_cam.to(scene.means)[None]
+    K = cam.K.to(scene.means)[None]
+    if colors is None:
+        cols, kw = scene.sh, {"sh_degree": deg}
+    else:
+        cols, kw = colors, {}
+    rc, ra, meta = rasterization(scene.means, scene.quats, scene.scales, scene.opacities, cols, viewmat, K,
+                                 cam.width, cam.height, near_plane=cam.near, far_plane=cam.far,
+                                 render_mode="RGB+ED", backgrounds=torch.cat([bg, bg.new_zeros(1)])[None],
+                                 eps2d=EPS2D, packed=False, **kw)
+    alpha = ra[0, ..., 0]
+    means2d = meta["means2d"]
+    return {"rgb": rc[0, ..., :3], "alpha": alpha, "depth": rc[0, ..., 3], "means2d": means2d,
+            "visible_ids": torch.arange(len(scene), device=scene.device), "radii": meta["radii"][0]}
