@@ -143,7 +143,7 @@ def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
         quats=t(cols["quats"]),
         opacity_logits=t(cols["opacity_logits"])[:, 0].contiguous(),
         sh_dc=t(cols["sh_dc"]),
-        sh_rest=t(cols["rest"]).reshape(-1, 3, k).transpose(1, 2).contiguous(),
+        sh_rest=t(cols["rest"]).reshape(int(valid.sum()), 3, k).transpose(1, 2).contiguous(),
     )
     if (~valid).any():
         log.warning("%s: dropped %d of %d Gaussians with NaN/inf values", path, int((~valid).sum()), n)

@@ -1,0 +1,98 @@
+"""Rasterizer benchmark: forward and forward+backward time and peak memory at 200x200 on CPU.
+
+    python benchmarks/render.py [--sizes 10000 50000 200000] [--backends native torch] [--repeats 5]
+
+Scenes: N Gaussians on the surface of a procedural content mesh (a trained-object-like layout, scale
+matched to the sample spacing), seen by an orbit camera that frames the object. Each (backend, N)
+runs in a fresh subprocess so its peak resident memory (VmHWM, reset before the timed part) is its
+own. Writes ``results/benchmarks/render.csv``; times are medians over ``--repeats`` after one warm-up.
+The last column gives each backend's time relative to the native one in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _rss(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def worker(backend: str, n: int, size: int, repeats: int, mesh: str) -> dict:
+    import torch
+
+    torch.set_flush_denormal(True)
+    from wast3d.procedural import content_scene
+    from wast3d.rendering import rasterize
+    from wast3d.render import fit_orbit
+
+    scene = content_scene(mesh, n, seed=0)
+    cam = fit_orbit(scene, 3, size)[1]
+    params = [t.requires_grad_(True) for t in scene.tensors().values()]
+    rasterize(scene, cam, backend=backend)["rgb"].sum().backward()  # warm-up (builds kernels, caches)
+    base = _rss("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # reset the peak (VmHWM)
+    fwd, fb = [], []
+    for _ in range(repeats):
+        for p in params:
+            p.grad = None
+        t0 = time.perf_counter()
+        r = rasterize(scene, cam, backend=backend)
+        t1 = time.perf_counter()
+        (r["rgb"].sum() + r["depth"].sum()).backward()
+        t2 = time.perf_counter()
+        fwd.append(t1 - t0)
+        fb.append(t2 - t0)
+    peak = _rss("VmHWM")
+    med = lambda xs: sorted(xs)[len(xs) // 2]  # noqa: E731
+    return {"backend": backend, "gaussians": n, "width": size, "height": size, "threads": torch.get_num_threads(),
+            "visible": int(r["visible_ids"].numel()), "forward_s": med(fwd), "forward_backward_s": med(fb),
+            "peak_mb_above_baseline": peak - base, "peak_rss_mb": peak}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 50000, 200000])
+    ap.add_argument("--backends", nargs="+", default=["native", "torch"])
+    ap.add_argument("--resolution", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--mesh", default="sphere")
+    ap.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "render.csv")
+    ap.add_argument("--_worker", nargs=2, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a._worker:
+        print(json.dumps(worker(a._worker[0], int(a._worker[1]), a.resolution, a.repeats, a.mesh)))
+        return
+    import pandas as pd
+
+    rows = []
+    for n in a.sizes:
+        for b in a.backends:
+            cmd = [sys.executable, __file__, "--_worker", b, str(n), "--resolution", str(a.resolution),
+                   "--repeats", str(a.repeats if b == "native" else max(1, a.repeats // 2)), "--mesh", a.mesh]
+            out = subprocess.run(cmd, capture_output=True, text=True)
+            if out.returncode:
+                print(out.stderr, file=sys.stderr)
+                continue
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(rows[-1], flush=True)
+    df = pd.DataFrame(rows)
+    ref = df[df.backend == "native"].set_index("gaussians")["forward_backward_s"]
+    df["fb_time_vs_native"] = df.apply(lambda r: r.forward_backward_s / ref.get(r.gaussians, float("nan")), axis=1)
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    df.to_csv(a.out, index=False)
+    print(df.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()

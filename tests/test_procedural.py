@@ -1,0 +1,39 @@
+import pytest
+import torch
+
+from wast3d.gaussians import anisotropy
+from wast3d.procedural import CONTENTS, STYLES, make_scene
+
+
+@pytest.mark.parametrize("name", sorted(STYLES))
+def test_style_scenes(name):
+    a = make_scene("style", name, 4000, seed=0)
+    b = make_scene("style", name, 4000, seed=0)
+    c = make_scene("style", name, 4000, seed=1)
+    assert 0.6 * 4000 <= len(a) <= 1.1 * 4000
+    for k, v in a.tensors().items():
+        assert torch.isfinite(v).all(), k
+        assert torch.equal(v, getattr(b, k)), k  # deterministic by seed
+    assert not torch.equal(a.means[: min(len(a), len(c))], c.means[: min(len(a), len(c))])
+    # real local geometry, not colour noise on a plane: relief above the ground and tilted normals
+    z = a.means[:, 2]
+    assert float(torch.quantile(z, 0.95) - torch.quantile(z, 0.05)) > 0.04
+    normal_z = a.rotations[:, 2, 2].abs()  # third axis is the disc normal
+    assert float((normal_z < 0.7).float().mean()) > 0.1
+    assert float(anisotropy(a.scales).max()) < 6  # discs, no needles
+    assert float(a.rgb.std(0).mean()) > 0.02
+
+
+@pytest.mark.parametrize("name", CONTENTS)
+def test_content_scenes(name):
+    a = make_scene("content", name, 3000, seed=0)
+    assert len(a) == 3000
+    assert torch.isfinite(a.means).all() and float(a.means.norm(dim=1).max()) <= 1.0 + 1e-5
+    assert torch.equal(a.means, make_scene("content", name, 3000, seed=0).means)
+
+
+def test_unknown_names():
+    with pytest.raises(KeyError, match="unknown procedural style 'moss'"):
+        make_scene("style", "moss", 100)
+    with pytest.raises(KeyError, match="unknown content mesh 'teapot'"):
+        make_scene("content", "teapot", 100)

@@ -1,0 +1,137 @@
+import math
+
+import pytest
+import torch
+from torch.overrides import TorchFunctionMode
+
+from conftest import random_scene
+from wast3d.cameras import Camera, orbit_cameras
+from wast3d.gaussians import GaussianScene
+from wast3d.rendering import ALPHA_MIN, bin_tiles, project, rasterize
+
+BACKENDS = ["torch", "native"]
+
+
+def _identity_cam(w=40, h=30, f=50.0, dtype=torch.float64):
+    return Camera(torch.eye(4, dtype=dtype), f, f, w / 2, h / 2, w, h)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_closed_form_single_gaussian(backend):
+    """One isotropic Gaussian facing the camera: alpha(p) = o exp(-|p - mu|^2 / (2 s^2)),
+    s^2 = (f sigma / z)^2 + 0.3 (the low-pass dilation), composited on the background."""
+    z0, sigma, o, f = 4.0, 0.15, 0.8, 50.0
+    cam = _identity_cam(f=f)
+    scene = GaussianScene.from_activated(torch.tensor([[0.0, 0.0, z0]], dtype=torch.float64),
+                                         torch.full((1, 3), sigma, dtype=torch.float64), opacities=o,
+                                         rgb=torch.tensor([[0.9, 0.2, 0.1]], dtype=torch.float64))
+    bg = torch.tensor([0.1, 0.3, 0.5], dtype=torch.float64)
+    r = rasterize(scene, cam, background=bg, backend=backend)
+    ys, xs = torch.meshgrid(torch.arange(30, dtype=torch.float64) + 0.5, torch.arange(40, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    s2 = (f * sigma / z0) ** 2 + 0.3
+    a = o * torch.exp(-((xs - 20) ** 2 + (ys - 15) ** 2) / (2 * s2))
+    a = torch.where(a >= ALPHA_MIN, a.clamp_max(0.99), torch.zeros_like(a))
+    expect = a[..., None] * torch.tensor([0.9, 0.2, 0.1], dtype=torch.float64) + (1 - a[..., None]) * bg
+    assert torch.allclose(r["alpha"], a, atol=1e-12)
+    assert torch.allclose(r["rgb"], expect, atol=1e-12)
+    assert torch.allclose(r["depth"][a > 0], torch.full_like(r["depth"][a > 0], z0))
+    assert (r["depth"][a == 0] == 0).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradcheck_float64(backend):
+    scene = random_scene(6, sh_degree=1, seed=3, dtype=torch.float64, spread=0.3)
+    scene.opacity_logits.clamp_(-3, 0.5)  # stay away from the 0.99 clamp
+    cam = orbit_cameras(1, 3.0, 24, 20, fov_deg=40)[0].to(dtype=torch.float64)
+    names = list(scene.tensors())
+    w = torch.rand(20, 24, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+
+    def f(*ts):
+        s = GaussianScene(**dict(zip(names, ts)))
+        r = rasterize(s, cam, background=(0.2, 0.4, 0.6), backend=backend)
+        return (r["rgb"] * w).sum(), r["alpha"].square().sum(), (r["depth"] * r["alpha"]).sum()
+
+    inputs = [t.clone().requires_grad_(True) for t in scene.tensors().values()]
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_native_matches_torch():
+    scene = random_scene(1500, sh_degree=2, seed=1)
+    cam = orbit_cameras(3, 3.5, 70, 50)[1]
+    outs = {}
+    for b in BACKENDS:
+        s = scene.clone()
+        for t in s.tensors().values():
+            t.requires_grad_(True)
+        r = rasterize(s, cam, background=(1.0, 1.0, 1.0), backend=b)
+        ((r["rgb"] * torch.linspace(0, 1, 3)).sum() + r["depth"].sum() * 0.1 + r["alpha"].sum()).backward()
+        outs[b] = (r, {k: v.grad for k, v in s.tensors().items()})
+    for k in ("rgb", "alpha", "depth"):
+        assert torch.allclose(outs["torch"][0][k], outs["native"][0][k], atol=2e-4), k
+    for k, g in outs["torch"][1].items():
+        assert torch.allclose(g, outs["native"][1][k], atol=1e-3 * (1 + g.abs().max())), k
+
+
+def test_binning_is_exact_culling():
+    """Every pixel a Gaussian reaches with alpha >= 1/255 lies in a tile it is binned into."""
+    scene = random_scene(300, seed=2)
+    cam = orbit_cameras(1, 3.0, 64, 48)[0]
+    p = project(scene.means, scene.quats, scene.scales, scene.opacities, cam)
+    gid, off = bin_tiles(p, 64, 48)
+    ys, xs = torch.meshgrid(torch.arange(48) + 0.5, torch.arange(64) + 0.5, indexing="ij")
+    d = p.means2d[:, None, None, :] - torch.stack([xs, ys], -1)[None]
+    a, b, c = p.conics.T[:, :, None, None]
+    sig = 0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) + b * d[..., 0] * d[..., 1]
+    reach = p.opacities[:, None, None] * torch.exp(-sig) >= ALPHA_MIN
+    tiles_x = 4
+    for g in range(len(p.ids)):
+        yy, xx = reach[g].nonzero(as_tuple=True)
+        for t in set(((yy // 16) * tiles_x + xx // 16).tolist()):
+            assert g in gid[off[t]:off[t + 1]].tolist()
+
+
+class _ExpRange(TorchFunctionMode):
+    def __init__(self):
+        super().__init__()
+        self.min_arg = math.inf
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if func in (torch.exp, torch.Tensor.exp) and args[0].numel():
+            self.min_arg = min(self.min_arg, float(args[0].min()))
+        return func(*args, **(kwargs or {}))
+
+
+def test_no_exp_of_large_negative_arguments():
+    """exp of arguments below about -87 gives denormals in float32 and was 50-100x slower here:
+    the PyTorch compositor clamps the Gaussian exponent (>= -12) and log-transmittance (>= -30)."""
+    scene = random_scene(400, seed=4)
+    scene.opacity_logits.fill_(8.0)  # opaque: transmittance collapses fast
+    cam = orbit_cameras(1, 3.0, 32, 32)[0]
+    with _ExpRange() as m:
+        rasterize(scene, cam, backend="torch")
+    assert m.min_arg >= -30.0
+
+
+def test_empty_and_offscreen():
+    cam = orbit_cameras(1, 3.0, 16, 16)[0]
+    for b in BACKENDS:
+        r = rasterize(GaussianScene.empty(), cam, background=(0.5, 0.5, 0.5), backend=b)
+        assert torch.equal(r["rgb"], torch.full((16, 16, 3), 0.5)) and (r["alpha"] == 0).all()
+        behind = random_scene(10)
+        behind.means[:] = torch.tensor([100.0, 0, 0])  # far outside the view
+        r = rasterize(behind, cam, backend=b)
+        assert (r["alpha"] == 0).all()
+
+
+def test_projection_matches_gsplat_reference():
+    """gsplat's pure-PyTorch projection (_fully_fused_projection) runs on CPU: same means2d, conics, depths."""
+    ref = pytest.importorskip("gsplat.cuda._torch_impl")
+    scene = random_scene(500, seed=5, dtype=torch.float64)
+    cam = orbit_cameras(1, 3.0, 80, 60)[0].to(dtype=torch.float64)
+    p = project(scene.means, scene.quats, scene.scales, scene.opacities, cam)
+    radii, means2d, depths, conics, _ = ref._fully_fused_projection(
+        scene.means, scene.covariances, cam.world_to_cam[None], cam.K[None], 80, 60, eps2d=0.3)
+    assert torch.allclose(means2d[0, p.ids], p.means2d, atol=1e-9)
+    assert torch.allclose(conics[0, p.ids], p.conics, rtol=1e-7, atol=1e-9)
+    assert torch.allclose(depths[0, p.ids], p.depths)

@@ -1,0 +1,202 @@
+"""The ``wast3d`` command: one subcommand per stage; every Snakemake rule calls one of these.
+
+Each subcommand reads its inputs, calls the library's pure functions and writes its outputs
+atomically. Errors in inputs are reported as one line naming the file and the field (exit code 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("wast3d")
+
+COMMANDS: dict[str, tuple] = {}
+
+
+def command(name: str, help: str):
+    def deco(fn):
+        COMMANDS[name] = (fn, help)
+        return fn
+
+    return deco
+
+
+# ---- info ------------------------------------------------------------------------------------
+
+
+def scene_summary(scene) -> dict:
+    """What a user inspecting a scene wants to see: counts, bounds, quantiles of scale, anisotropy,
+    opacity. Pure: takes a scene, returns a dict."""
+    import torch
+
+    from .gaussians import anisotropy
+
+    qs = [0.0, 0.05, 0.5, 0.95, 1.0]
+    q = lambda t: {f"q{int(p * 100):02d}": float(torch.quantile(t.double(), p)) for p in qs} if len(t) else {}  # noqa: E731
+    m = scene.means
+    return {
+        "count": len(scene),
+        "sh_degree": scene.sh_degree,
+        "bounds_min": m.min(0).values.tolist() if len(m) else None,
+        "bounds_max": m.max(0).values.tolist() if len(m) else None,
+        "scale_max_axis": q(scene.scales.max(1).values),
+        "scale_min_axis": q(scene.scales.min(1).values),
+        "anisotropy": q(anisotropy(scene.scales)),
+        "opacity": q(scene.opacities),
+    }
+
+
+@command("info", "summarize a 3DGS or point-cloud PLY")
+def cmd_info(sub):
+    sub.add_argument("ply", type=Path)
+    sub.add_argument("--json", action="store_true", help="print JSON")
+
+    def run(a):
+        from .ply import PlyError, read_ply
+
+        try:
+            info = {"file": str(a.ply), "valid": True, **scene_summary(read_ply(a.ply))}
+        except (PlyError, FileNotFoundError) as e:
+            info = {"file": str(a.ply), "valid": False, "error": str(e)}
+        if a.json:
+            print(json.dumps(info, indent=2))
+        else:
+            for k, v in info.items():
+                if isinstance(v, dict):
+                    v = "  ".join(f"{kk}={vv:.4g}" for kk, vv in v.items())
+                elif isinstance(v, list):
+                    v = "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+                print(f"{k:16s} {v}")
+        return 0 if info["valid"] else 1
+
+    return run
+
+
+# ---- scenes ----------------------------------------------------------------------------------
+
+
+@command("scene", "generate a procedural style or content scene as a 3DGS PLY")
+def cmd_scene(sub):
+    sub.add_argument("kind", choices=["style", "content"])
+    sub.add_argument("name")
+    sub.add_argument("out", type=Path)
+    sub.add_argument("--n", type=int, default=30000, help="number of Gaussians (approximate)")
+    sub.add_argument("--seed", type=int, default=0)
+
+    def run(a):
+        from .ply import write_ply
+        from .procedural import make_scene
+
+        scene = make_scene(a.kind, a.name, a.n, a.seed)
+        write_ply(a.out, scene)
+        log.info("wrote %s: %d Gaussians (%s '%s', seed %d)", a.out, len(scene), a.kind, a.name, a.seed)
+        return 0
+
+    return run
+
+
+@command("import-ply", "validate a trained 3DGS PLY (or point cloud) and write it in the canonical layout")
+def cmd_import(sub):
+    sub.add_argument("ply", type=Path)
+    sub.add_argument("out", type=Path)
+    sub.add_argument("--drop-invalid", action="store_true", help="drop Gaussians with NaN/inf instead of failing")
+
+    def run(a):
+        from .ply import read_ply, write_ply
+
+        scene = read_ply(a.ply, drop_invalid=a.drop_invalid)
+        write_ply(a.out, scene)
+        log.info("imported %s -> %s: %d Gaussians, SH degree %d", a.ply, a.out, len(scene), scene.sh_degree)
+        return 0
+
+    return run
+
+
+@command("preview", "render a 1 x N grid of orbit views of a PLY")
+def cmd_preview(sub):
+    sub.add_argument("ply", type=Path)
+    sub.add_argument("out", type=Path)
+    sub.add_argument("--views", type=int, default=4)
+    sub.add_argument("--size", type=int, default=256)
+
+    def run(a):
+        from .ply import read_ply
+        from .render import save_preview
+
+        save_preview(read_ply(a.ply), a.out, a.views, a.size)
+        return 0
+
+    return run
+
+
+@command("export-views", "render a PLY into a Blender-format posed image set (orbit cameras)")
+def cmd_export(sub):
+    sub.add_argument("ply", type=Path)
+    sub.add_argument("out", type=Path, help="output folder (transforms_train.json + train/*.png)")
+    sub.add_argument("--views", type=int, default=48)
+    sub.add_argument("--size", type=int, default=200)
+
+    def run(a):
+        from .ply import read_ply
+        from .render import export_blender
+
+        export_blender(read_ply(a.ply), a.out, a.views, a.size)
+        return 0
+
+    return run
+
+
+@command("build-ext", "compile the native CPU kernels ahead of time")
+def cmd_build(sub):
+    sub.add_argument("--force", action="store_true")
+
+    def run(a):
+        from . import _native
+
+        for name in ("raster_cpu",):
+            print(_native.build(name, force=a.force))
+        return 0
+
+    return run
+
+
+# ---- entry point -----------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="wast3d", description=__doc__.splitlines()[0])
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    sp = p.add_subparsers(dest="cmd", required=True)
+    for name, (fn, help_) in COMMANDS.items():
+        sub = sp.add_parser(name, help=help_, description=help_)
+        sub.set_defaults(_run=fn(sub))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    import torch
+
+    torch.set_flush_denormal(True)  # denormals make CPU kernels 50-100x slower
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    from .datasets import DatasetError
+    from .ply import PlyError
+
+    try:
+        return int(args._run(args) or 0)
+    except (PlyError, DatasetError, FileNotFoundError, KeyError, ValueError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        log.error("%s", msg)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,311 @@
+"""Procedural scenes: the project's embedded default data (no downloads).
+
+Style scenes are square patches (x, y in [-1, 1], z up) of surface Gaussians with real local geometry,
+in the spirit of the paper's style scenes:
+
+- ``pebbles``: flattened ellipsoidal pebbles of a river-bed palette lying on sand;
+- ``grass``: curved blades (chains of small Gaussians) standing on soil;
+- ``wicker``: a basket weave, warp and weft tubes passing over and under each other;
+- ``stones``: rough boulders (spheres displaced by random bumps) half sunk in gravel.
+
+Content scenes are meshes that pyvista ships (``ant``, ``airplane``, ``nut``, ``globe``, and the
+parametric ``torus``/``sphere``), normalized to the unit ball, with Gaussians sampled on the surface
+(area-weighted) as flat discs facing the normal.
+
+Every generator is deterministic given its seed. Gaussians are surface discs: tangential scale
+0.6 x the sample spacing, normal scale ``flatness`` x that, so no needles appear (the paper
+regularizes its style scenes for the same reason).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .gaussians import GaussianScene, rotmat_to_quat
+
+STYLES: dict[str, Callable] = {}
+CONTENTS = ("ant", "airplane", "nut", "globe", "torus", "sphere")
+CONTENT_COLORS = {"ant": (0.75, 0.35, 0.2), "airplane": (0.45, 0.6, 0.85), "nut": (0.85, 0.7, 0.35),
+                  "globe": (0.35, 0.6, 0.75), "torus": (0.8, 0.45, 0.6), "sphere": (0.6, 0.75, 0.5)}
+
+
+def _register(fn):
+    STYLES[fn.__name__.removeprefix("style_")] = fn
+    return fn
+
+
+def frames_from_normals(n: np.ndarray) -> np.ndarray:
+    """n: [N, 3] unit normals -> [N, 3, 3] rotations whose third column is n."""
+    helper = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    t1 = np.cross(helper, n)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    return np.stack([t1, t2, n], axis=2)
+
+
+def surface_gaussians(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, spacing: float | np.ndarray,
+                      flatness: float = 0.3, opacity: float = 0.95, tangent: np.ndarray | None = None,
+                      elongation: float = 1.0) -> GaussianScene:
+    """Disc-shaped Gaussians on a surface.
+
+    points/normals/colors: [N, 3]; spacing: scalar or [N]. With ``tangent`` [N, 3] given, the first
+    axis follows it and is ``elongation`` times longer (blades, strands).
+    """
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
+    if tangent is not None:
+        t1 = tangent - (tangent * n).sum(1, keepdims=True) * n
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True).clip(1e-12)
+        R = np.stack([t1, np.cross(n, t1), n], axis=2)
+    else:
+        R = frames_from_normals(n)
+    sp = np.broadcast_to(np.asarray(spacing, dtype=np.float64), (len(points),))[:, None] * 0.6
+    scales = np.concatenate([sp * elongation, sp, sp * flatness], axis=1)
+    q = rotmat_to_quat(torch.from_numpy(R))
+    return GaussianScene.from_activated(
+        torch.from_numpy(points).float(), torch.from_numpy(scales).float(), q.float(), opacities=opacity,
+        rgb=torch.from_numpy(np.clip(colors, 0.0, 1.0)).float(),
+    )
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = math.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+
+
+def _ground(rng: np.random.Generator, n: int, base: np.ndarray, noise: float, height=0.0, roughness=0.01):
+    xy = rng.uniform(-1, 1, size=(n, 2))
+    z = height + roughness * rng.standard_normal(n)
+    pts = np.concatenate([xy, z[:, None]], 1)
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 1)) + 0.15 * rng.standard_normal((n, 3))
+    col = base[None] * (1 + noise * rng.standard_normal((n, 1))) + 0.03 * rng.standard_normal((n, 3))
+    return pts, nrm, col
+
+
+def _place_disks(rng, count, rmin, rmax, max_tries=20000):
+    """Non-overlapping discs in [-1, 1]^2 by dart throwing: centres [K, 2], radii [K]."""
+    cs, rs = [], []
+    for _ in range(max_tries):
+        if len(cs) >= count:
+            break
+        r = rng.uniform(rmin, rmax)
+        c = rng.uniform(-1 + r * 0.5, 1 - r * 0.5, size=2)
+        if all(np.hypot(*(c - c2)) > 0.9 * (r + r2) for c2, r2 in zip(cs, rs)):
+            cs.append(c)
+            rs.append(r)
+    return np.array(cs), np.array(rs)
+
+
+@_register
+def style_pebbles(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    palette = np.array([[0.55, 0.53, 0.50], [0.35, 0.33, 0.32], [0.62, 0.48, 0.36], [0.80, 0.77, 0.70],
+                        [0.42, 0.36, 0.30], [0.25, 0.25, 0.27]])
+    centres, radii = _place_disks(rng, 60, 0.08, 0.18)
+    n_ground = n_gaussians // 6
+    per = (n_gaussians - n_ground) * radii**2 / (radii**2).sum()
+    P, N, C = [], [], []
+    for c, r, m in zip(centres, radii, per.astype(int)):
+        d = _fibonacci_sphere(max(int(m / 0.65), 8))
+        d = d[d[:, 2] > -0.3]  # the buried underside is not sampled (65 % of the sphere is kept)
+        ax = np.array([r, r * rng.uniform(0.6, 0.95), r * rng.uniform(0.3, 0.5)])
+        yaw = rng.uniform(0, 2 * math.pi)
+        Rz = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+        p = (d * ax) @ Rz.T + np.array([c[0], c[1], ax[2] * 0.55])
+        nrm = (d / ax**2) @ Rz.T
+        base = palette[rng.integers(len(palette))]
+        shade = 0.75 + 0.25 * d[:, 2:3]  # darker underneath
+        col = base * shade * (1 + 0.06 * rng.standard_normal((len(p), 1))) + 0.02 * rng.standard_normal((len(p), 3))
+        P.append(p), N.append(nrm), C.append(col)
+    g = _ground(rng, n_ground, np.array([0.76, 0.68, 0.52]), 0.12)
+    P.append(g[0]), N.append(g[1]), C.append(g[2])
+    P, N, C = map(np.concatenate, (P, N, C))
+    return surface_gaussians(P, N, C, _spacing(P, 4.0 + 2 * math.pi * (radii**2).sum() * 0.8))
+
+
+@_register
+def style_grass(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    n_ground = n_gaussians // 5
+    per_blade = 24
+    n_blades = (n_gaussians - n_ground) // per_blade
+    base = rng.uniform(-1, 1, size=(n_blades, 2))
+    height = rng.uniform(0.12, 0.32, n_blades)
+    yaw = rng.uniform(0, 2 * math.pi, n_blades)
+    lean = rng.uniform(0.1, 0.6, n_blades)
+    s = np.linspace(0, 1, per_blade)
+    # blade centreline: rises and bends towards its lean direction (quadratic)
+    dirx, diry = np.cos(yaw), np.sin(yaw)
+    off = (lean[:, None] * height[:, None] * s[None] ** 2)
+    x = base[:, :1] + dirx[:, None] * off
+    y = base[:, 1:] + diry[:, None] * off
+    z = height[:, None] * (s[None] - 0.35 * lean[:, None] * s[None] ** 3)
+    P = np.stack([x, y, z], -1).reshape(-1, 3)
+    tang = np.gradient(np.stack([x, y, z], -1), axis=1).reshape(-1, 3)
+    side = np.stack([-diry, dirx, np.zeros_like(dirx)], -1)[:, None].repeat(per_blade, 1).reshape(-1, 3)
+    nrm = np.cross(tang, side)
+    green = np.array([[0.20, 0.45, 0.12], [0.35, 0.60, 0.18], [0.50, 0.62, 0.22], [0.28, 0.40, 0.10]])
+    bc = green[rng.integers(len(green), size=n_blades)]
+    tipfac = (0.55 + 0.6 * s)[None, :, None]
+    C = (bc[:, None, :] * tipfac).reshape(-1, 3) + 0.02 * rng.standard_normal((len(P), 3))
+    spacing = (height[:, None] / per_blade * np.ones((1, per_blade))).reshape(-1)
+    blades = surface_gaussians(P, nrm, C, spacing, flatness=0.35, tangent=tang, elongation=1.6)
+    g = _ground(rng, n_ground, np.array([0.36, 0.27, 0.18]), 0.15)
+    ground = surface_gaussians(*g, _spacing(g[0], 4.0))
+    return GaussianScene.concat([ground, blades])
+
+
+@_register
+def style_wicker(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    n_strands = 12
+    d = 2.0 / n_strands
+    amp = 0.035
+    tube_r = 0.022
+    per_strand = n_gaussians // (2 * n_strands)
+    ring = 8
+    along = per_strand // ring
+    u = np.linspace(-1, 1, along)
+    th = np.linspace(0, 2 * math.pi, ring, endpoint=False)
+    P, N, C, T = [], [], [], []
+    pal = np.array([[0.72, 0.55, 0.33], [0.62, 0.45, 0.25], [0.80, 0.64, 0.40]])
+    for direction in (0, 1):
+        for j in range(n_strands):
+            off = -1 + d * (j + 0.5) + rng.uniform(-0.08, 0.08) * d  # hand-woven: irregular spacing
+            phase = math.pi * (j + direction)
+            a_j = amp * rng.uniform(0.8, 1.2)
+            zc = a_j * np.sin(math.pi * u / d + phase)
+            dz = a_j * math.pi / d * np.cos(math.pi * u / d + phase)
+            t = np.stack([np.ones_like(u), np.zeros_like(u), dz], -1)
+            t /= np.linalg.norm(t, axis=1, keepdims=True)
+            side = np.array([0.0, 1.0, 0.0])
+            up = np.cross(t, side)
+            circ = (np.cos(th)[None, :, None] * side[None, None] + np.sin(th)[None, :, None] * up[:, None, :])
+            centre = np.stack([u, np.full_like(u, off), zc], -1)
+            p = centre[:, None, :] + tube_r * rng.uniform(0.85, 1.15) * circ
+            if direction == 1:  # warp runs along y: swap x and y
+                p = p[..., [1, 0, 2]]
+                circ = circ[..., [1, 0, 2]]
+                t = t[:, [1, 0, 2]]
+            base = pal[rng.integers(len(pal))]
+            stripe = 0.85 + 0.15 * np.cos(3 * th)[None, :, None]  # lengthwise fibres
+            col = base * stripe * (1 + 0.05 * rng.standard_normal((along, ring, 1)))
+            P.append(p.reshape(-1, 3)), N.append(circ.reshape(-1, 3)), C.append(col.reshape(-1, 3))
+            T.append(np.repeat(t, ring, axis=0))
+    P, N, C, T = map(np.concatenate, (P, N, C, T))
+    spacing = max(2.0 / along, 2 * math.pi * tube_r / ring)
+    return surface_gaussians(P, N, C, spacing, flatness=0.4, tangent=T, elongation=1.3)
+
+
+@_register
+def style_stones(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    centres, radii = _place_disks(rng, 14, 0.16, 0.34)
+    n_ground = n_gaussians // 5
+    per = (n_gaussians - n_ground) * radii**2 / (radii**2).sum()
+    P, N, C = [], [], []
+    for c, r, m in zip(centres, radii, per.astype(int)):
+        d = _fibonacci_sphere(max(m * 2, 16))
+        bumps = rng.standard_normal((6, 3))
+        bumps /= np.linalg.norm(bumps, axis=1, keepdims=True)
+        amp = rng.uniform(-0.18, 0.18, 6)
+        rad = 1 + (amp[None] * np.exp(-((d @ bumps.T) - 1) ** 2 / 0.08)).sum(1)
+        rad *= 1 + 0.03 * rng.standard_normal(len(d))  # rough surface
+        p = d * rad[:, None] * r
+        p[:, 2] *= 0.8
+        p += np.array([c[0], c[1], -0.25 * r])  # half sunk
+        keep = p[:, 2] > -0.02
+        # normals by finite differences of the radial function are noisy; the radial direction with
+        # the squash is close enough for disc orientation
+        nrm = d * np.array([1.0, 1.0, 1.25])
+        grey = rng.uniform(0.35, 0.6)
+        col = np.array([grey, grey * 0.98, grey * 0.95]) * (1 + 0.12 * rng.standard_normal((len(p), 1)))
+        speck = rng.random(len(p)) < 0.05
+        col[speck] *= 0.4
+        P.append(p[keep]), N.append(nrm[keep]), C.append(col[keep])
+    g = _ground(rng, n_ground, np.array([0.45, 0.42, 0.38]), 0.25, roughness=0.015)
+    P.append(g[0]), N.append(g[1]), C.append(g[2])
+    P, N, C = map(np.concatenate, (P, N, C))
+    return surface_gaussians(P, N, C, _spacing(P, 4.0 + 4 * math.pi * (radii**2).sum() * 0.7))
+
+
+def _spacing(points: np.ndarray, area: float) -> float:
+    return math.sqrt(area / max(len(points), 1))
+
+
+def style_scene(name: str, n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    if name not in STYLES:
+        raise KeyError(f"unknown procedural style '{name}' (choose from {', '.join(sorted(STYLES))})")
+    return STYLES[name](n_gaussians=n_gaussians, seed=seed)
+
+
+# ---------------------------------------------------------------------------------------------
+# content from meshes shipped by pyvista
+# ---------------------------------------------------------------------------------------------
+
+
+def load_mesh(name: str):
+    """A triangle mesh (pyvista PolyData) that pyvista ships, or a parametric shape; no downloads."""
+    import pyvista as pv
+    from pyvista import examples
+
+    loaders = {
+        "ant": examples.load_ant, "airplane": examples.load_airplane, "nut": examples.load_nut,
+        "globe": lambda: examples.load_globe(), "torus": lambda: pv.ParametricTorus(ringradius=1.0, crosssectionradius=0.35),
+        "sphere": lambda: pv.Sphere(radius=1.0, theta_resolution=64, phi_resolution=64),
+    }
+    if name not in loaders:
+        raise KeyError(f"unknown content mesh '{name}' (choose from {', '.join(CONTENTS)})")
+    mesh = loaders[name]()
+    return mesh.extract_surface(algorithm=None).triangulate().clean()
+
+
+def sample_mesh_surface(mesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """Area-weighted uniform samples on a triangle mesh -> points [n, 3], normals [n, 3], total area."""
+    faces = mesh.faces.reshape(-1, 4)[:, 1:]
+    v = np.asarray(mesh.points, dtype=np.float64)
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    cr = np.cross(b - a, c - a)
+    area = 0.5 * np.linalg.norm(cr, axis=1)
+    ok = area > 0
+    a, b, c, cr, area = a[ok], b[ok], c[ok], cr[ok], area[ok]
+    f = rng.choice(len(area), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    pts = (1 - s)[:, None] * a[f] + (s * (1 - r2))[:, None] * b[f] + (s * r2)[:, None] * c[f]
+    nrm = cr[f] / np.linalg.norm(cr[f], axis=1, keepdims=True)
+    return pts, nrm, float(area.sum())
+
+
+def content_scene(name: str, n_gaussians: int = 20000, seed: int = 0) -> GaussianScene:
+    """Surface Gaussians on a pyvista mesh, normalized to the unit ball centred at the origin, z up."""
+    rng = np.random.default_rng(seed)
+    mesh = load_mesh(name)
+    pts, nrm, area = sample_mesh_surface(mesh, n_gaussians, rng)
+    lo, hi = pts.min(0), pts.max(0)
+    centre = 0.5 * (lo + hi)
+    scale = 1.0 / np.linalg.norm(pts - centre, axis=1).max()
+    pts = (pts - centre) * scale
+    spacing = math.sqrt(area * scale**2 / n_gaussians)
+    # colour: a light base with a gentle gradient along the longest axis and normal shading, so that
+    # k-means on position + colour has something to see
+    ax = np.argmax(hi - lo)
+    g = (pts[:, ax] - pts[:, ax].min()) / max(np.ptp(pts[:, ax]), 1e-9)
+    hue = CONTENT_COLORS.get(name, (0.7, 0.6, 0.5))
+    base = np.asarray(hue)[None] * (0.55 + 0.45 * g[:, None])
+    col = base * (0.8 + 0.2 * np.abs(nrm[:, 2:3]))
+    return surface_gaussians(pts, nrm, col, spacing, flatness=0.3)
+
+
+def make_scene(kind: str, name: str, n_gaussians: int, seed: int = 0) -> GaussianScene:
+    """``kind`` is ``style`` or ``content``."""
+    if kind == "style":
+        return style_scene(name, n_gaussians, seed)
+    if kind == "content":
+        return content_scene(name, n_gaussians, seed)
+    raise ValueError(f"procedural scene kind must be 'style' or 'content', got '{kind}'")

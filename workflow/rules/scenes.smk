@@ -1,0 +1,52 @@
+"""Scenes: every scene ends up as results/scenes/{scene}/scene.ply, by the one rule its source needs."""
+
+
+rule procedural_scene:
+    output:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+    wildcard_constraints:
+        scene=constraint(scenes_of("procedural")),
+    params:
+        kind=lambda w: SCENES[w.scene]["kind"],
+        name=lambda w: SCENES[w.scene]["name"],
+        n=lambda w: SCENES[w.scene].get("n_gaussians", 30000),
+        seed=lambda w: SCENES[w.scene].get("seed", 0),
+    log:
+        f"{RESULTS}/logs/scenes/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/scene_{{scene}}.tsv"
+    shell:
+        "{WAST3D} scene {params.kind} {params.name} {output.ply} --n {params.n} --seed {params.seed} 2> {log}"
+
+
+rule import_ply:
+    input:
+        lambda w: SCENES[w.scene]["path"],
+    output:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+    wildcard_constraints:
+        scene=constraint(scenes_of("ply")),
+    params:
+        drop=lambda w: "--drop-invalid" if SCENES[w.scene].get("drop_invalid") else "",
+    log:
+        f"{RESULTS}/logs/scenes/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/import_{{scene}}.tsv"
+    shell:
+        "{WAST3D} import-ply {input} {output.ply} {params.drop} 2> {log}"
+
+
+rule preview:
+    input:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+    output:
+        png=report(f"{RESULTS}/scenes/{{scene}}/preview.png", caption="../report/preview.rst", category="Scenes"),
+    params:
+        views=config.get("preview", {}).get("views", 4),
+        size=config.get("preview", {}).get("size", 256),
+    log:
+        f"{RESULTS}/logs/preview/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/preview_{{scene}}.tsv"
+    shell:
+        "{WAST3D} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
