@@ -157,7 +157,7 @@ def cmd_build(sub):
     def run(a):
         from . import _native
 
-        for name in ("raster_cpu",):
+        for name in ("raster_cpu", "sinkhorn_cpu"):
             print(_native.build(name, force=a.force))
         return 0
 
