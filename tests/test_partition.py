@@ -1,0 +1,151 @@
+import numpy as np
+import pytest
+import torch
+
+from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
+from wast3d.gaussians import GaussianScene
+from wast3d.registration import RegistrationConfig, random_rotation, register
+from wast3d.selection import select
+from wast3d.surface import SurfaceConfig, sample_surface
+
+D64 = torch.float64
+
+
+def bumpy_patch(n, seed=3):
+    """A non-periodic bumpy surface: every sub-patch is unique, so a registration is identifiable."""
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.rand(n, 2, generator=g, dtype=D64) * 2 - 1
+    c = torch.rand(6, 2, generator=torch.Generator().manual_seed(7), dtype=D64) * 2 - 1
+    h = torch.tensor([0.3, -0.25, 0.2, 0.35, -0.3, 0.15], dtype=D64)
+    z = (h * torch.exp(-((xy[:, None, :] - c[None]) ** 2).sum(-1) / 0.08)).sum(1)
+    return torch.cat([xy, z[:, None]], 1)
+
+
+def test_registration_recovers_known_transform():
+    """Clusters are copies of the style patch under known R, anisotropic S and t: recovered to 1e-6
+    style spacings with one landing point (the patch centre) and the default 6 yaws x 2 signs."""
+    style = bumpy_patch(3000)
+    g = torch.Generator().manual_seed(0)
+    pts, labs, truth = [], [], []
+    for i in range(4):
+        R = random_rotation(g)
+        s = torch.tensor([0.5, 0.6, 0.55], dtype=D64)
+        t = torch.randn(3, generator=g, dtype=D64) * 3
+        pts.append((style / s) @ R + t)  # S R (g - t) = style
+        labs.append(torch.full((len(style),), i))
+        truth.append((R, s, t))
+    P, L = torch.cat(pts), torch.cat(labs)
+    reg = register(P, L, style, RegistrationConfig(landings=1))
+    for i, (R, s, t) in enumerate(truth):
+        m = L == i
+        err = (reg.apply(P[m], L[m]) - s * ((P[m] - t) @ R.T)).norm(dim=1).mean() / reg.style_spacing
+        assert float(err) < 1e-6
+        assert torch.allclose(reg.R[i], R, atol=1e-6) and torch.allclose(reg.s[i], s, atol=1e-6)
+        assert float(reg.residual[i]) < 1e-6 < float(reg.residual_init[i])
+    assert torch.allclose(reg.inverse(reg.apply(P, L), L), P, atol=1e-9)
+
+
+def test_registration_degenerate_clusters_are_finite_and_proper():
+    style = bumpy_patch(2000)
+    g = torch.Generator().manual_seed(1)
+    line = torch.linspace(0, 1, 10, dtype=D64)[:, None] * torch.tensor([[1.0, 2.0, 0.5]], dtype=D64)
+    plane = torch.cat([torch.rand(30, 2, generator=g, dtype=D64), torch.zeros(30, 1, dtype=D64)], 1)
+    clusters = [
+        torch.tensor([[0.3, 0.1, 0.2]], dtype=D64),                # one point
+        torch.rand(2, 3, generator=g, dtype=D64),                   # two points
+        torch.rand(3, 3, generator=g, dtype=D64) + 5,               # three points
+        line + 10,                                                  # collinear
+        plane - 4,                                                  # planar
+        torch.tensor([[1.0, 1.0, 1.0]] * 12, dtype=D64),            # duplicates
+        torch.rand(200, 3, generator=g, dtype=D64) * 2,             # a normal blob
+    ]
+    P = torch.cat(clusters)
+    L = torch.cat([torch.full((len(c),), i) for i, c in enumerate(clusters)])
+    reg = register(P, L, style, RegistrationConfig(landings=2, yaws=3))
+    for name in ("R", "s", "t", "p", "residual", "residual_init"):
+        assert torch.isfinite(getattr(reg, name)).all(), name
+    assert torch.allclose(torch.linalg.det(reg.R), torch.ones(len(clusters), dtype=D64), atol=1e-9)
+    assert torch.allclose(reg.R @ reg.R.transpose(1, 2), torch.eye(3, dtype=D64).expand(len(clusters), 3, 3), atol=1e-9)
+    lo, hi = reg.s0 / 1.5, reg.s0 * 1.5
+    assert bool(((reg.s >= lo - 1e-12) & (reg.s <= hi + 1e-12)).all())
+
+
+def test_registration_errors():
+    style = bumpy_patch(100)
+    with pytest.raises(ValueError, match="empty clusters \\[1\\]"):
+        register(torch.rand(10, 3, dtype=D64), torch.tensor([0] * 5 + [2] * 5), style)
+    with pytest.raises(ValueError, match="style=0"):
+        register(torch.rand(10, 3, dtype=D64), torch.zeros(10, dtype=torch.long), style[:0])
+
+
+def test_selection_respects_k_and_indexes_style():
+    style = bumpy_patch(500)
+    mapped = torch.rand(60, 3, dtype=D64)
+    labels = torch.arange(60) % 3
+    for k in (1, 4, 16):
+        off, idx = select(mapped, labels, style, k)
+        assert off[0] == 0 and off[-1] == len(idx) and len(off) == 4
+        for i in range(3):
+            d = idx[off[i]:off[i + 1]]
+            assert (d >= 0).all() and (d < len(style)).all()
+            assert len(torch.unique(d)) == len(d)  # a union: no duplicates
+            assert len(d) <= 20 * k
+            # exactly the union of each point's k nearest
+            m = mapped[labels == i]
+            nn = torch.cdist(m, style).topk(k, largest=False).indices.unique()
+            assert torch.equal(torch.sort(d).values, nn)
+    with pytest.raises(ValueError, match="k must be >= 1"):
+        select(mapped, labels, style, 0)
+
+
+def test_kmeans_deterministic_and_sizes():
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(3000, 3, generator=g)
+    rgb = torch.rand(3000, 3, generator=g)
+    cfg = ClusterConfig(target_cluster_size=300, seed=5)
+    l1, c1, info = kmeans(pts, rgb, cfg)
+    l2, c2, _ = kmeans(pts, rgb, cfg)
+    assert np.array_equal(l1, l2) and np.allclose(c1, c2)
+    assert info["clusters"] == 10 == len(c1) and set(np.unique(l1)) == set(range(10))
+    l3, _, _ = kmeans(pts, rgb, ClusterConfig(target_cluster_size=300, seed=6))
+    assert not np.array_equal(l1, l3)
+    assert n_clusters_for(1_000_000, ClusterConfig()) == 400 and n_clusters_for(5, ClusterConfig()) == 1
+    assert n_clusters_for(1000, ClusterConfig(n_clusters=7)) == 7
+
+
+def test_kmeans_merges_small_clusters():
+    pts = torch.cat([torch.rand(500, 3), torch.tensor([[50.0, 50.0, 50.0]])])  # a lone far point
+    labels, cent, info = kmeans(pts, torch.rand(501, 3), ClusterConfig(n_clusters=5, min_size=4))
+    assert info["merged_small_clusters"] >= 1
+    assert np.bincount(labels).min() >= 4 and len(cent) == labels.max() + 1
+
+
+def _sphere_with_junk(n=4000, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    surf = d / d.norm(dim=1, keepdim=True)
+    inside = torch.randn(800, 3, generator=g) * 0.15  # hidden inside
+    floaters = (torch.rand(60, 3, generator=g) - 0.5) * 8  # far outside
+    means = torch.cat([surf, inside, floaters])
+    scene = GaussianScene.from_activated(means, torch.full((len(means), 3), 0.04), opacities=0.95)
+    return scene, n
+
+
+def test_surface_sampling_removes_interior_and_floaters():
+    scene, n = _sphere_with_junk()
+    idx, rep = sample_surface(scene, SurfaceConfig(views=12, resolution=96, depth_tolerance=0.05))
+    kept = set(idx.tolist())
+    surface_kept = sum(i < n for i in kept) / n
+    junk_kept = sum(i >= n for i in kept)
+    assert surface_kept > 0.8 and junk_kept <= 5
+    assert rep["removed_outliers"] > 0 and rep["removed_not_on_visible_surface"] > 0
+    assert rep["kept"] == len(idx)
+
+
+def test_surface_sampling_skip_and_resampling(caplog):
+    caplog.set_level("INFO")
+    scene, _ = _sphere_with_junk()
+    idx, rep = sample_surface(scene, SurfaceConfig(enabled=False))
+    assert len(idx) == len(scene) and rep["skipped"] and "skipped" in caplog.text
+    idx, rep = sample_surface(scene, SurfaceConfig(visibility=False, outlier_k=0, max_points=500))
+    assert len(idx) == 500 and rep["removed_by_resampling"] == len(scene) - 500

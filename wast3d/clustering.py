@@ -1,0 +1,84 @@
+"""Stage 3, k-means of the content into clusters on position and colour.
+
+Features: ``[xyz / radius, colour_weight * rgb]`` (positions divided by the scene radius so that the
+colour weight means the same at every scene scale). Number of clusters: ``n_clusters`` when given
+(paper: 400), else ``round(points / target_cluster_size)`` clamped to [1, max_clusters]: a small scene
+gets few clusters of a useful size instead of 400 tiny ones. scikit-learn's ``KMeans`` (deterministic
+by seed) up to ``minibatch_above`` x clusters feature rows, ``MiniBatchKMeans`` beyond.
+Empty clusters are impossible with Lloyd's algorithm in scikit-learn; clusters below ``min_size``
+points are merged into the nearest remaining centroid and the merge is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ClusterConfig:
+    n_clusters: int = 0  # 0: derive from target_cluster_size
+    target_cluster_size: int = 2500
+    max_clusters: int = 400
+    colour_weight: float = 0.2
+    min_size: int = 4
+    seed: int = 0
+    minibatch_above: int = 20_000_000
+
+
+def n_clusters_for(n_points: int, cfg: ClusterConfig) -> int:
+    if cfg.n_clusters:
+        return max(1, min(cfg.n_clusters, n_points))
+    return int(max(1, min(cfg.max_clusters, round(n_points / max(cfg.target_cluster_size, 1)), n_points)))
+
+
+def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    """means: [N, 3], rgb: [N, 3] -> labels [N] (0..K-1, every label used), centroids [K, 3] (xyz), info."""
+    from sklearn.cluster import KMeans, MiniBatchKMeans
+
+    x = means.detach().double().cpu().numpy()
+    n = len(x)
+    if n == 0:
+        raise ValueError("k-means: no points to cluster")
+    centre = np.median(x, axis=0)
+    radius = max(float(np.quantile(np.linalg.norm(x - centre, axis=1), 0.99)), 1e-12)
+    feats = np.concatenate([(x - centre) / radius, cfg.colour_weight * rgb.detach().double().cpu().numpy()], 1)
+    k = n_clusters_for(n, cfg)
+    if n * k > cfg.minibatch_above:
+        km = MiniBatchKMeans(k, random_state=cfg.seed, batch_size=4096, n_init=3)
+        algo = "MiniBatchKMeans"
+    else:
+        km = KMeans(k, random_state=cfg.seed, n_init=1)
+        algo = "KMeans"
+    labels = km.fit_predict(feats)
+    labels, merged = _merge_small(labels, feats, cfg.min_size)
+    K = labels.max() + 1
+    cent = np.stack([x[labels == i].mean(0) for i in range(K)])
+    sizes = np.bincount(labels, minlength=K)
+    info = {"algorithm": algo, "requested_clusters": k, "clusters": int(K), "merged_small_clusters": merged,
+            "size_min": int(sizes.min()), "size_median": float(np.median(sizes)), "size_max": int(sizes.max()),
+            "points": n}
+    log.info("k-means (%s): %d clusters of %d..%d points (median %.0f)", algo, K, sizes.min(), sizes.max(),
+             np.median(sizes))
+    return labels.astype(np.int64), cent, info
+
+
+def _merge_small(labels: np.ndarray, feats: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:
+    """Merge clusters smaller than ``min_size`` into the nearest large cluster; relabel 0..K-1."""
+    ids, counts = np.unique(labels, return_counts=True)
+    small = ids[counts < min_size]
+    big = ids[counts >= min_size]
+    if len(small) and len(big):
+        cents = np.stack([feats[labels == i].mean(0) for i in big])
+        for s in small:
+            m = labels == s
+            d = ((feats[m][:, None, :] - cents[None]) ** 2).sum(-1)
+            labels[m] = big[d.argmin(1)]
+        log.info("k-means: merged %d clusters below %d points into their nearest neighbours", len(small), min_size)
+    _, labels = np.unique(labels, return_inverse=True)
+    return labels, int(len(small)) if len(big) else 0
