@@ -1,0 +1,158 @@
+"""The I/O edge of every stage: read artifacts, call the pure stage functions, write artifacts.
+
+Each ``run_*`` function is what one ``wast3d <stage>`` command (and one Snakemake rule) does. Stage
+parameters arrive as a dict (the rule's JSON ``--params``) and are checked by the stage's config
+dataclass: an unknown key is an error naming the stage and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from .io_utils import atomic_path, load_npz, save_npz, write_json
+from .ply import read_ply, write_ply
+
+log = logging.getLogger(__name__)
+
+
+def make_config(cls, params: dict | None, stage: str):
+    """Build a config dataclass from a dict, rejecting unknown keys with a message naming them."""
+    params = dict(params or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(params) - names)
+    if unknown:
+        raise ValueError(f"{stage}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    return cls(**params)
+
+
+def run_surface(scene_ply: Path, out_ply: Path, out_json: Path, params: dict) -> None:
+    from .surface import SurfaceConfig, sample_surface
+
+    cfg = make_config(SurfaceConfig, params, "surface")
+    scene = read_ply(scene_ply)
+    idx, report = sample_surface(scene, cfg)
+    report["source"] = str(scene_ply)
+    write_ply(out_ply, scene.subset(idx))
+    write_json(out_json, report)
+
+
+def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: dict) -> None:
+    from .clustering import ClusterConfig, kmeans
+
+    cfg = make_config(ClusterConfig, params, "cluster")
+    content = read_ply(content_ply)
+    labels, cent, info = kmeans(content.means, content.rgb, cfg)
+    save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels))
+    write_json(Path(out_npz).with_suffix(".json"), info)
+    if out_png:
+        from .figures import clusters_picture
+
+        clusters_picture(content.means.numpy(), labels, out_png, f"{info['clusters']} clusters")
+
+
+def _labels(path: Path, n: int) -> torch.Tensor:
+    lab = load_npz(path, required=("labels",))["labels"]
+    if len(lab) != n:
+        raise ValueError(f"{path}: 'labels' has {len(lab)} entries but the content scene has {n} Gaussians "
+                         "(the clusters were made for another content scene)")
+    return torch.from_numpy(lab).long()
+
+
+def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz: Path, out_png: Path | None,
+                 params: dict) -> None:
+    from .registration import RegistrationConfig, register
+
+    cfg = make_config(RegistrationConfig, params, "register")
+    content, style = read_ply(content_ply), read_ply(style_ply)
+    labels = _labels(clusters_npz, len(content))
+    reg = register(content.means, labels, style.means, cfg)
+    save_npz(out_npz, **reg.to_npz())
+    write_json(Path(out_npz).with_suffix(".json"), {
+        "clusters": len(reg.R), "s0": reg.s0, "style_spacing": reg.style_spacing,
+        "residual_init_mean": float(reg.residual_init.mean()), "residual_mean": float(reg.residual.mean()),
+        "residual_quantiles": {q: float(torch.quantile(reg.residual, q)) for q in (0.05, 0.5, 0.95)},
+        "units": "mean nearest-style-neighbour distance / mean style spacing"})
+    if out_png:
+        from .figures import registration_picture
+
+        mapped = reg.apply(content.means.double(), labels)
+        panels = []
+        for i in np.linspace(0, len(reg.R) - 1, min(6, len(reg.R))).astype(int):
+            m = mapped[labels == i]
+            c, r = m.mean(0), float((m - m.mean(0)).norm(dim=1).max()) * 1.5 + 1e-9
+            near = ((style.means.double() - c).norm(dim=1) < r)
+            panels.append((m.numpy(), style.means[near].numpy(), style.rgb[near].numpy()))
+        registration_picture(panels, out_png)
+
+
+def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
+    from .registration import Registration
+    from .selection import select
+
+    k = int(params.get("k", 3))
+    unknown = set(params) - {"k"}
+    if unknown:
+        raise ValueError(f"select: unknown parameter(s) {', '.join(sorted(unknown))} (known: k)")
+    content, style = read_ply(content_ply), read_ply(style_ply)
+    labels = _labels(clusters_npz, len(content))
+    reg = Registration.from_npz(load_npz(reg_npz))
+    offsets, indices = select(reg.apply(content.means.double(), labels), labels, style.means.double(), k)
+    sizes = (offsets[1:] - offsets[:-1]).numpy()
+    save_npz(out_npz, offsets=offsets.numpy(), indices=indices.numpy(), sizes=sizes, k=k)
+    write_json(Path(out_npz).with_suffix(".json"), {"k": k, "clusters": len(sizes), "selected_total": int(sizes.sum()),
+                                                    "size_min": int(sizes.min()), "size_median": float(np.median(sizes)),
+                                                    "size_max": int(sizes.max())})
+
+
+def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, sel_npz: Path,
+                out_ply: Path, out_npz: Path, out_csv: Path, params: dict, progress: bool = True) -> None:
+    from .registration import Registration
+    from .stylize import StylizeConfig, stylize
+
+    cfg = make_config(StylizeConfig, params, "stylize")
+    content, style = read_ply(content_ply), read_ply(style_ply)
+    labels = _labels(clusters_npz, len(content))
+    reg = Registration.from_npz(load_npz(reg_npz))
+    sel = load_npz(sel_npz, required=("offsets", "indices"))
+    if int(sel["indices"].max(initial=0)) >= len(style):
+        raise ValueError(f"{sel_npz}: 'indices' point past the style scene's {len(style)} Gaussians")
+    out, labs, curves, secs, before = stylize(content, labels, style, reg, torch.from_numpy(sel["offsets"]),
+                                              torch.from_numpy(sel["indices"]), cfg, progress)
+    write_ply(out_ply, out)
+    save_npz(out_npz, labels=labs.numpy(), before_means=before.means.numpy())
+    rows = [{"cluster": i, "iteration": j, "loss": v} for i, c in enumerate(curves) for j, v in enumerate(c)]
+    with atomic_path(out_csv) as tmp:
+        pd.DataFrame(rows).to_csv(tmp, index=False)
+    write_json(Path(out_csv).with_suffix(".json"), {
+        "clusters": len(curves), "gaussians": len(out), "seconds_total": float(sum(secs)),
+        "seconds_per_cluster_step": float(sum(secs) / max(1, sum(len(c) for c in curves))),
+        "loss_first_mean": float(np.mean([c[0] for c in curves])) if curves and curves[0] else None,
+        "loss_last_mean": float(np.mean([c[-1] for c in curves])) if curves and curves[0] else None,
+        "config": dataclasses.asdict(cfg)})
+
+
+def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: dict) -> None:
+    from .rescale import readjust_scales
+
+    unknown = set(params) - {"k", "bound", "enabled"}
+    if unknown:
+        raise ValueError(f"rescale: unknown parameter(s) {', '.join(sorted(unknown))} (known: bound, enabled, k)")
+    scene = read_ply(stylized_ply)
+    d = load_npz(stylize_npz, required=("labels", "before_means"))
+    if not params.get("enabled", True):
+        log.info("scale readjustment disabled: the stylized scene is passed through")
+        write_ply(out_ply, scene)
+        return
+    out, ratio = readjust_scales(scene, torch.from_numpy(d["before_means"]), torch.from_numpy(d["labels"]),
+                                 int(params.get("k", 8)), float(params.get("bound", 2.0)))
+    write_ply(out_ply, out)
+    write_json(Path(out_ply).with_suffix(".json"), {
+        "ratio_quantiles": {q: float(torch.quantile(ratio, q)) for q in (0.05, 0.5, 0.95)},
+        "at_bound": float(((ratio <= 1 / float(params.get("bound", 2.0)) + 1e-9) |
+                           (ratio >= float(params.get("bound", 2.0)) - 1e-9)).double().mean())})
