@@ -1,7 +1,8 @@
 """wast3d: WaSt-3D scene-to-scene stylization as a workflow of cached stages.
 
-    snakemake --profile workflow/profiles/local            # the demo (config/config.yaml)
-    snakemake --profile workflow/profiles/local -n         # what would run, and why
+    snakemake --profile workflow/profiles/local                                 # the demo
+    snakemake --profile workflow/profiles/local --config sweep=paper_ablations  # the paper's ablations
+    snakemake --profile workflow/profiles/local -n                              # what would run, and why
 """
 
 
@@ -10,9 +11,14 @@ configfile: "config/config.yaml"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scenes.smk"
+include: "workflow/rules/partition.smk"
+include: "workflow/rules/stylize.smk"
+include: "workflow/rules/render.smk"
 
 
 rule all:
     input:
         expand(f"{RESULTS}/scenes/{{scene}}/preview.png", scene=list(SCENES)),
+        [f"{RESULTS}/stylize/{c}__{s}/{e}/preview.png" for c, s in PAIRS for e in RUN],
+        f"{RESULTS}/tables/{TABLE}.csv",
     default_target: True

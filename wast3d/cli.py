@@ -256,6 +256,26 @@ def cmd_rescale(sub):
     return run
 
 
+@command("summarize", "one table row per (content, style, experiment) from the stage reports")
+def cmd_summarize(sub):
+    sub.add_argument("results", type=Path)
+    sub.add_argument("out_csv", type=Path)
+    sub.add_argument("--md", type=Path)
+    sub.add_argument("--run", nargs="+", required=True, help="CONTENT__STYLE/EXPERIMENT ...")
+
+    def run(a):
+        from .tables import run_row, write_table
+
+        rows = []
+        for r in a.run:
+            pair, exp = r.split("/")
+            c, s = pair.split("__")
+            rows.append(run_row(a.results, c, s, exp))
+        print(write_table(rows, a.out_csv, a.md).to_string(index=False))
+
+    return run
+
+
 @command("build-ext", "compile the native CPU kernels ahead of time")
 def cmd_build(sub):
     sub.add_argument("--force", action="store_true")

@@ -148,6 +148,7 @@ def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: di
     if not params.get("enabled", True):
         log.info("scale readjustment disabled: the stylized scene is passed through")
         write_ply(out_ply, scene)
+        write_json(Path(out_ply).with_suffix(".json"), {"skipped": True, "reason": "rescale.enabled is false"})
         return
     out, ratio = readjust_scales(scene, torch.from_numpy(d["before_means"]), torch.from_numpy(d["labels"]),
                                  int(params.get("k", 8)), float(params.get("bound", 2.0)))

@@ -59,6 +59,7 @@ class StylizeConfig:
     arap_weight: float = 1.0
     arap_k: int = 8
     dtype: str = "float32"
+    device: str = "auto"  # "auto": CUDA when available
     sinkhorn: SinkhornConfig = field(default_factory=SinkhornConfig)
 
     def __post_init__(self):
@@ -100,12 +101,14 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
     """One term of eq. 9. x_*: content cluster in the style frame [N,3]; y_*: its style Gaussians [M,3]."""
     t0 = time.perf_counter()
     dt = torch.float64 if cfg.dtype == "float64" else torch.float32
+    dev = torch.device("cuda" if cfg.device == "auto" and torch.cuda.is_available() else
+                       ("cpu" if cfg.device == "auto" else cfg.device))
     c, r = normalize_pair(x_pos.double())
-    xn = ((x_pos.double() - c) / r).to(dt)
-    yn = ((y_pos.double() - c) / r).to(dt)
+    xn = ((x_pos.double() - c) / r).to(dev, dt)
+    yn = ((y_pos.double() - c) / r).to(dev, dt)
     w = cfg.colour_weight
-    xf = torch.cat([xn, w * colour_features(x_rgb, cfg.features).to(dt)], 1)
-    y0c = colour_features(y_rgb, cfg.features).to(dt)
+    xf = torch.cat([xn, w * colour_features(x_rgb, cfg.features).to(dev, dt)], 1)
+    y0c = colour_features(y_rgb, cfg.features).to(dev, dt)
     Y = yn.clone().requires_grad_(True)
     dC = torch.zeros_like(y0c).requires_grad_(True)
     groups = [{"params": [Y], "lr": cfg.lr}]
@@ -133,8 +136,8 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
         if not (torch.isfinite(Y.grad).all() and (dC.grad is None or torch.isfinite(dC.grad).all())):
             raise FloatingPointError(f"stylize: non-finite gradient at iteration {it}")
         opt.step()
-    pos = Y.detach().double() * r + c
-    return ClusterResult(pos.to(y_pos.dtype), dC.detach().to(y_rgb.dtype), losses, time.perf_counter() - t0)
+    pos = Y.detach().cpu().double() * r + c
+    return ClusterResult(pos.to(y_pos.dtype), dC.detach().cpu().to(y_rgb.dtype), losses, time.perf_counter() - t0)
 
 
 class _ArapState:

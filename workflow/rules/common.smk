@@ -1,12 +1,64 @@
-"""Shared by every rule file: config validation and the helpers that decide which stages a scene needs."""
+"""Shared by all rule files (config validation, experiments and sweeps) and the decisions about which
+stages each scene needs (logged when a stage is left out)."""
+
+import copy
+import os
+import json
+import sys
 
 from snakemake.utils import validate
 
 
 validate(config, schema="../schemas/config.schema.yaml")
 
-SCENES = config["scenes"]
 RESULTS = "results"
+# the interpreter running Snakemake runs the stages too (no PATH set-up needed, same on cluster nodes)
+WAST3D = f"{sys.executable} -m wast3d"
+
+SCENES = config["scenes"]
+PARTITIONS = config.get("partitions", {"default": {}})
+PAIRS = [tuple(p) for p in config.get("pairs", [])]
+
+
+def deep_merge(base, over):
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def expand_experiments():
+    """The named experiments, plus the variants of the sweep given by --config sweep=NAME."""
+    exps = {name: {"partition": "default", **e} for name, e in config.get("experiments", {"default": {}}).items()}
+    sweep = config.get("sweep")
+    if not sweep:
+        return exps, list(config.get("run", list(exps)))
+    sweeps = config.get("sweeps", {})
+    if sweep not in sweeps:
+        raise ValueError(f"config: sweep '{sweep}' is not defined under 'sweeps' (defined: {', '.join(sweeps) or 'none'})")
+    s = sweeps[sweep]
+    base = exps[s["base"]]
+    names = []
+    for vname, over in s["variants"].items():
+        name = f"{sweep}-{vname}"
+        exps[name] = deep_merge(base, over)
+        names.append(name)
+    return exps, names
+
+
+EXPERIMENTS, RUN = expand_experiments()
+for _e, _x in EXPERIMENTS.items():
+    if _x["partition"] not in PARTITIONS:
+        raise ValueError(f"config: experiments.{_e}.partition '{_x['partition']}' is not defined under 'partitions'")
+for _c, _s in PAIRS:
+    for _n in (_c, _s):
+        if _n not in SCENES:
+            raise ValueError(f"config: pairs: scene '{_n}' is not defined under 'scenes'")
+for _r in RUN:
+    if _r not in EXPERIMENTS:
+        raise ValueError(f"config: run: experiment '{_r}' is not defined under 'experiments'")
+
+CONTENTS = sorted({c for c, _ in PAIRS})
 
 
 def scenes_of(source):
@@ -18,14 +70,46 @@ def constraint(names):
     return "|".join(names) if names else "(?!x)x"
 
 
+def needs_surface(scene):
+    s = SCENES[scene]
+    return s["source"] != "procedural" and s.get("surface", {}).get("enabled", True)
+
+
+def scenes_needing_surface():
+    return [c for c in SCENES if needs_surface(c)]
+
+
+def content_points(scene):
+    """The content Gaussians that k-means sees: the surface samples, or the scene itself."""
+    return f"{RESULTS}/scenes/{scene}/{'surface' if needs_surface(scene) else 'scene'}.ply"
+
+
+def stage_json(params):
+    return json.dumps(params, separators=(",", ":"), sort_keys=True)
+
+
+# say what is left out, and why
 for _name, _s in SCENES.items():
-    _skip = {"procedural": "pretraining (the scene is generated as Gaussians)",
-             "ply": "pretraining (a trained 3DGS PLY is given)",
-             "images": None}[_s["source"]]
-    if _skip:
-        logger.info(f"scene '{_name}': left out {_skip}")
+    if _s["source"] == "procedural":
+        logger.info(f"scene '{_name}': left out pretraining (generated as Gaussians)")
+    elif _s["source"] == "ply":
+        logger.info(f"scene '{_name}': left out pretraining (a trained 3DGS PLY is given)")
+    if _name in CONTENTS and not needs_surface(_name):
+        why = "a procedural scene is a clean surface" if _s["source"] == "procedural" else "surface.enabled is false"
+        logger.info(f"scene '{_name}': left out surface sampling ({why})")
 
-import sys
 
-# the interpreter running Snakemake runs the stages too (no PATH set-up needed, same on cluster nodes)
-WAST3D = f"{sys.executable} -m wast3d"
+def table_experiments(table):
+    """'summary' lists the experiments run; a sweep's table lists its variants."""
+    return RUN if table in ("summary", config.get("sweep")) else []
+
+
+TABLE = config.get("sweep") or "summary"
+
+
+def partition_of(w):
+    return EXPERIMENTS[w.experiment]["partition"]
+
+
+def summary_runs(experiments):
+    return [f"{c}__{s}/{e}" for c, s in PAIRS for e in experiments]

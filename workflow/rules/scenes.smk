@@ -7,16 +7,19 @@ rule procedural_scene:
     wildcard_constraints:
         scene=constraint(scenes_of("procedural")),
     params:
+        exe=WAST3D,
         kind=lambda w: SCENES[w.scene]["kind"],
         name=lambda w: SCENES[w.scene]["name"],
         n=lambda w: SCENES[w.scene].get("n_gaussians", 30000),
         seed=lambda w: SCENES[w.scene].get("seed", 0),
+    conda:
+        "../envs/wast3d.yaml"
     log:
         f"{RESULTS}/logs/scenes/{{scene}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/rules/scene_{{scene}}.tsv"
     shell:
-        "{WAST3D} scene {params.kind} {params.name} {output.ply} --n {params.n} --seed {params.seed} 2> {log}"
+        "{params.exe} scene {params.kind} {params.name} {output.ply} --n {params.n} --seed {params.seed} 2> {log}"
 
 
 rule import_ply:
@@ -27,13 +30,16 @@ rule import_ply:
     wildcard_constraints:
         scene=constraint(scenes_of("ply")),
     params:
+        exe=WAST3D,
         drop=lambda w: "--drop-invalid" if SCENES[w.scene].get("drop_invalid") else "",
+    conda:
+        "../envs/wast3d.yaml"
     log:
         f"{RESULTS}/logs/scenes/{{scene}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/rules/import_{{scene}}.tsv"
     shell:
-        "{WAST3D} import-ply {input} {output.ply} {params.drop} 2> {log}"
+        "{params.exe} import-ply {input} {output.ply} {params.drop} 2> {log}"
 
 
 rule preview:
@@ -42,11 +48,14 @@ rule preview:
     output:
         png=report(f"{RESULTS}/scenes/{{scene}}/preview.png", caption="../report/preview.rst", category="Scenes"),
     params:
+        exe=WAST3D,
         views=config.get("preview", {}).get("views", 4),
         size=config.get("preview", {}).get("size", 256),
+    conda:
+        "../envs/wast3d.yaml"
     log:
         f"{RESULTS}/logs/preview/{{scene}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/rules/preview_{{scene}}.tsv"
     shell:
-        "{WAST3D} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"

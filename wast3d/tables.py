@@ -1,0 +1,64 @@
+"""Tables: one row per (content, style, experiment) from the stages' JSON reports and Snakemake's
+``benchmark:`` files. Pure functions build DataFrames; :func:`write_table` is the I/O edge."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from .io_utils import atomic_path
+
+
+def _read(path: Path) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def _bench(path: Path) -> dict:
+    """Snakemake benchmark TSV -> seconds and peak memory (max_rss, MB)."""
+    try:
+        df = pd.read_csv(path, sep="\t")
+        return {"seconds": float(df["s"].iloc[0]), "max_rss_mb": float(df["max_rss"].iloc[0])}
+    except (OSError, KeyError, ValueError, IndexError, pd.errors.EmptyDataError):
+        return {}
+
+
+def run_row(results: Path, content: str, style: str, experiment: str) -> dict:
+    d = Path(results) / "stylize" / f"{content}__{style}" / experiment
+    loss = _read(d / "losses.json")
+    final = _read(d / "final.json")
+    metrics = _read(d / "metrics.json")
+    b = _bench(Path(results) / "benchmarks" / "rules" / f"sinkhorn_{content}__{style}_{experiment}.tsv")
+    cfg = loss.get("config", {})
+    row = {
+        "content": content, "style": style, "experiment": experiment,
+        "features": cfg.get("features"), "loss": cfg.get("loss"),
+        "blur": cfg.get("sinkhorn", {}).get("blur"), "debias": cfg.get("sinkhorn", {}).get("debias"),
+        "clusters": loss.get("clusters"), "gaussians": loss.get("gaussians"),
+        "loss_first": loss.get("loss_first_mean"), "loss_last": loss.get("loss_last_mean"),
+        "stylize_s": b.get("seconds", loss.get("seconds_total")), "stylize_max_rss_mb": b.get("max_rss_mb"),
+        "rescale_ratio_median": final.get("ratio_quantiles", {}).get("0.5"),
+    }
+    row.update({k: v for k, v in metrics.items() if not isinstance(v, (dict, list))})
+    return row
+
+
+def write_table(rows: list[dict], csv_path: Path, md_path: Path | None = None) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    with atomic_path(csv_path) as tmp:
+        df.to_csv(tmp, index=False)
+    if md_path:
+        with atomic_path(md_path) as tmp:
+            tmp.write_text(to_markdown(df))
+    return df
+
+
+def to_markdown(df: pd.DataFrame) -> str:
+    """A GitHub table without the optional ``tabulate`` dependency."""
+    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else ("" if v is None else str(v))  # noqa: E731
+    head = "| " + " | ".join(df.columns) + " |\n|" + "---|" * len(df.columns) + "\n"
+    return head + "".join("| " + " | ".join(fmt(v) for v in r) + " |\n" for r in df.itertuples(index=False))

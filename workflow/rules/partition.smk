@@ -1,0 +1,90 @@
+"""Stages 2-4: surface sampling, k-means, registration (eq. 7), selection (eq. 8)."""
+
+
+rule surface:
+    input:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+    output:
+        ply=f"{RESULTS}/scenes/{{scene}}/surface.ply",
+        json=f"{RESULTS}/scenes/{{scene}}/surface.json",
+    wildcard_constraints:
+        scene=constraint(scenes_needing_surface()),
+    params:
+        exe=WAST3D,
+        cfg=lambda w: stage_json(SCENES[w.scene].get("surface", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/surface/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/surface_{{scene}}.tsv"
+    shell:
+        "{params.exe} surface {input.ply} {output.ply} {output.json} --params '{params.cfg}' 2> {log}"
+
+
+rule cluster:
+    input:
+        content=lambda w: content_points(w.content),
+    output:
+        npz=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
+        json=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.json",
+        png=report(f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.png",
+                   caption="../report/clusters.rst", category="Partition"),
+    params:
+        exe=WAST3D,
+        cfg=lambda w: stage_json(PARTITIONS[w.partition].get("cluster", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/cluster/{{content}}_{{partition}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/cluster_{{content}}_{{partition}}.tsv"
+    shell:
+        "{params.exe} cluster {input.content} {output.npz} --picture {output.png} --params '{params.cfg}' 2> {log}"
+
+
+rule register:
+    input:
+        content=lambda w: content_points(w.content),
+        clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
+        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+    output:
+        npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
+        json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.json",
+        png=report(f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.png",
+                   caption="../report/registration.rst", category="Partition"),
+    params:
+        exe=WAST3D,
+        cfg=lambda w: stage_json(PARTITIONS[w.partition].get("register", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/register/{{content}}__{{style}}_{{partition}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/register_{{content}}__{{style}}_{{partition}}.tsv"
+    shell:
+        "{params.exe} register {input.content} {input.clusters} {input.style} {output.npz} "
+        "--picture {output.png} --params '{params.cfg}' 2> {log}"
+
+
+rule select:
+    input:
+        content=lambda w: content_points(w.content),
+        clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
+        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        reg=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
+    output:
+        npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.npz",
+        json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.json",
+    params:
+        exe=WAST3D,
+        cfg=lambda w: stage_json(PARTITIONS[w.partition].get("select", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/select/{{content}}__{{style}}_{{partition}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/select_{{content}}__{{style}}_{{partition}}.tsv"
+    shell:
+        "{params.exe} select {input.content} {input.clusters} {input.style} {input.reg} {output.npz} "
+        "--params '{params.cfg}' 2> {log}"

@@ -1,0 +1,41 @@
+"""Stage 7: renders of results, and the summary table."""
+
+
+rule result_preview:
+    input:
+        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/final.ply",
+    output:
+        png=report(f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/preview.png",
+                   caption="../report/result.rst", category="Results", subcategory="{experiment}"),
+    params:
+        exe=WAST3D,
+        views=config.get("preview", {}).get("views", 4),
+        size=config.get("preview", {}).get("size", 256),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/preview/{{content}}__{{style}}_{{experiment}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/preview_{{content}}__{{style}}_{{experiment}}.tsv"
+    shell:
+        "{params.exe} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+
+
+rule summary:
+    input:
+        lambda w: [f"{RESULTS}/stylize/{r}/final.json" for r in summary_runs(table_experiments(w.table))],
+    output:
+        csv=report(f"{RESULTS}/tables/{{table}}.csv", caption="../report/summary.rst", category="Tables"),
+        md=f"{RESULTS}/tables/{{table}}.md",
+    params:
+        exe=WAST3D,
+        results=lambda w, output: os.path.dirname(os.path.dirname(output.csv)),
+        runs=lambda w: " ".join(summary_runs(table_experiments(w.table))),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/tables/{{table}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/table_{{table}}.tsv"
+    shell:
+        "{params.exe} summarize {params.results} {output.csv} --md {output.md} --run {params.runs} > {log} 2>&1"
