@@ -1,0 +1,176 @@
+"""The Snakemake workflow on a tiny config: schema errors, left-out stages, the whole DAG, caching
+(dry-run job lists after a parameter change), sweeps and the SLURM resource mapping."""
+
+import copy
+import re
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY = {
+    "scenes": {
+        "blob": {"source": "procedural", "kind": "content", "name": "torus", "n_gaussians": 1500},
+        "peb": {"source": "procedural", "kind": "style", "name": "pebbles", "n_gaussians": 3000},
+    },
+    "preview": {"views": 2, "size": 48},
+    "partitions": {"default": {"cluster": {"n_clusters": 3},
+                               "register": {"landings": 1, "yaws": 2, "iterations": 4, "refine_iterations": 4},
+                               "select": {"k": 2}}},
+    "experiments": {"default": {"stylize": {"iterations": 3}}},
+    "pairs": [["blob", "peb"]],
+    "run": ["default"],
+    "sweeps": {"abl": {"base": "default", "variants": {"full": {}, "xyz": {"stylize": {"features": "xyz"}},
+                                                        "arap": {"stylize": {"loss": "arap"}}}}},
+}
+
+
+def snake(workdir: Path, *args, config: dict | None = None, check=True):
+    if config is not None:
+        (workdir / "config").mkdir(parents=True, exist_ok=True)
+        (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(config))
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir), "--cores", "2", *args]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if check and r.returncode:
+        raise AssertionError(f"snakemake failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+    return r
+
+
+def jobs(r) -> dict:
+    """Job counts from a dry run's job-stats table."""
+    out = {}
+    m = re.search(r"job\s+count\n-+\s+-+\n(.*?)\ntotal", r.stdout, re.S)
+    for line in (m.group(1).splitlines() if m else []):
+        name, n = line.split()
+        out[name] = int(n)
+    return out
+
+
+@pytest.mark.parametrize("edit, field", [
+    (lambda c: c["scenes"]["blob"].update(n_gausians=5), "n_gausians"),
+    (lambda c: c.update(clusterz=1), "clusterz"),
+    (lambda c: c["experiments"]["default"]["stylize"].update(features="xyz+depth"), "xyz+depth"),
+    (lambda c: c["partitions"]["default"]["cluster"].update(n_clusters=-1), "-1"),
+])
+def test_schema_errors_name_the_field(tmp_path, edit, field):
+    cfg = copy.deepcopy(TINY)
+    edit(cfg)
+    r = snake(tmp_path, "-n", config=cfg, check=False)
+    assert r.returncode != 0
+    assert field in (r.stdout + r.stderr)
+
+
+def test_reference_errors(tmp_path):
+    cfg = copy.deepcopy(TINY)
+    cfg["pairs"] = [["blob", "nothere"]]
+    r = snake(tmp_path, "-n", config=cfg, check=False)
+    assert r.returncode != 0 and "scene 'nothere' is not defined" in r.stdout + r.stderr
+
+
+def test_left_out_what_a_scene_does_not_need(tmp_path):
+    from wast3d.ply import write_ply
+    from wast3d.procedural import make_scene
+
+    write_ply(tmp_path / "given.ply", make_scene("content", "nut", 800))
+    cfg = copy.deepcopy(TINY)
+    cfg["scenes"]["given"] = {"source": "ply", "path": str(tmp_path / "given.ply")}
+    cfg["pairs"] = [["blob", "peb"], ["given", "peb"]]
+    r = snake(tmp_path, "-n", config=cfg)
+    j = jobs(r)
+    assert j["import_ply"] == 1 and j["surface"] == 1  # only the PLY content is surface-sampled
+    assert "pretrain" not in j  # no scene here needs pretraining
+    assert j["procedural_scene"] == 2
+    log = r.stdout + r.stderr
+    assert "scene 'blob': left out surface sampling" in log
+    assert "scene 'given': left out pretraining (a trained 3DGS PLY is given)" in log
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    wd = tmp_path_factory.mktemp("wf")
+    snake(wd, config=copy.deepcopy(TINY))
+    return wd
+
+
+def test_whole_dag_artifacts(tiny_run):
+    from wast3d.ply import read_ply
+
+    r = tiny_run / "results"
+    for scene in ("blob", "peb"):
+        assert read_ply(r / "scenes" / scene / "scene.ply").means.isfinite().all()
+        assert (r / "scenes" / scene / "preview.png").stat().st_size > 0
+    cl = np.load(r / "partition/blob/default/clusters.npz")
+    assert cl["labels"].max() == 2
+    reg = np.load(r / "register/blob__peb/default/registration.npz")
+    assert np.isfinite(reg["R"]).all() and np.allclose(np.linalg.det(reg["R"]), 1)
+    sel = np.load(r / "register/blob__peb/default/selection.npz")
+    assert sel["offsets"][-1] == len(sel["indices"])
+    out = read_ply(r / "stylize/blob__peb/default/final.ply")
+    assert len(out) == len(sel["indices"])
+    assert all(torch.isfinite(t).all() for t in out.tensors().values())
+    for f in ("clusters.png",):
+        assert (r / "partition/blob/default" / f).stat().st_size > 0
+    assert (r / "register/blob__peb/default/registration.png").stat().st_size > 0
+    import pandas as pd
+
+    losses = pd.read_csv(r / "stylize/blob__peb/default/losses.csv")
+    assert np.isfinite(losses.loss).all() and losses.iteration.max() == 2
+    table = pd.read_csv(r / "tables/summary.csv")
+    assert len(table) == 1 and np.isfinite(table.loss_last).all()
+    for f in (r / "benchmarks/rules").glob("*.tsv"):
+        assert f.stat().st_size > 0
+    assert (r / "logs/sinkhorn/blob__peb_default.log").exists()
+
+
+def test_caching_reruns_only_what_a_change_affects(tiny_run):
+    assert jobs(snake(tiny_run, "-n", config=copy.deepcopy(TINY))) == {}
+    cfg = copy.deepcopy(TINY)
+    cfg["experiments"]["default"]["stylize"]["sinkhorn"] = {"blur": 0.1}
+    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {"sinkhorn", "rescale", "result_preview", "summary", "all"}
+    cfg = copy.deepcopy(TINY)
+    cfg["partitions"]["default"]["cluster"]["n_clusters"] = 2
+    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {
+        "cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary", "all"}
+    snake(tiny_run, "-n", config=copy.deepcopy(TINY))  # restore the config file
+
+
+def test_sweep_runs_each_variant_in_its_own_folder(tiny_run):
+    r = snake(tiny_run, "-n", "--config", "sweep=abl", config=copy.deepcopy(TINY))
+    j = jobs(r)
+    assert j["sinkhorn"] == 3 and j["summary"] == 1 and "cluster" not in j  # partition shared
+    for v in ("abl-full", "abl-xyz", "abl-arap"):
+        assert f"results/stylize/blob__peb/{v}/stylized.ply" in r.stdout
+    assert "results/tables/abl.csv" in r.stdout
+
+
+def test_slurm_profile_maps_resources_to_sbatch(tmp_path):
+    """The sbatch arguments the SLURM plugin builds for each rule, from the profile's site values
+    and the rules' declared resources (as a dry run resolves them)."""
+    sub = pytest.importorskip("snakemake_executor_plugin_slurm.submit_string")
+    utils = pytest.importorskip("snakemake_executor_plugin_slurm.utils")
+    r = snake(tmp_path, "-n", "--profile", str(ROOT / "workflow/profiles/slurm"), config=copy.deepcopy(TINY))
+    calls = {}
+    for rule, res in re.findall(r"^rule (\w+):.*?^    resources: (.*?)$", r.stdout, re.S | re.M):
+        kv = dict(x.split("=", 1) for x in res.split(", "))
+        vals = {k: (int(v) if v.isdigit() else v) for k, v in kv.items()}
+
+        class Res(SimpleNamespace):
+            def get(self, k, d=None):
+                return getattr(self, k, d)
+
+        job = SimpleNamespace(resources=Res(**vals), threads=1, is_group=lambda: False, name=rule)
+        params = {"run_uuid": "x", "slurm_logfile": "l", "comment_str": "c", "workdir": "",
+                  "account": f"-A {vals['slurm_account']}", "partition": f"-p {vals['slurm_partition']}"}
+        calls[rule] = sub.get_submit_command(job, params) + " " + utils.set_gres_string(job)
+    s = calls["sinkhorn"]
+    assert "-p gpu" in s and "-A my_account" in s and "--gpus=a100:1" in s.replace("'", "")
+    assert "--mem 8000" in s and "-t 240" in s
+    c = calls["cluster"]
+    assert "-p cpu" in c and "gpu" not in c.replace("-p cpu", "") and "--cpus-per-task=4" in c
