@@ -11,6 +11,7 @@ configfile: "config/config.yaml"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scenes.smk"
+include: "workflow/rules/pretrain.smk"
 include: "workflow/rules/partition.smk"
 include: "workflow/rules/stylize.smk"
 include: "workflow/rules/render.smk"

@@ -167,6 +167,26 @@ def _load_params(text: str) -> dict:
     return p
 
 
+@command("pretrain", "stage 1: regularized 3DGS pretraining from a Blender-format folder")
+def cmd_pretrain(sub):
+    sub.add_argument("data", type=Path, help="folder with transforms_train.json")
+    sub.add_argument("out_ply", type=Path)
+    sub.add_argument("out_csv", type=Path, help="training log")
+    sub.add_argument("out_json", type=Path, help="held-out evaluation")
+    sub.add_argument("--checkpoint", type=Path, help="checkpoint file: resumed from when it exists")
+    sub.add_argument("--init", type=Path, help="initial point cloud or 3DGS PLY")
+    sub.add_argument("--no-progress", action="store_true")
+    _params(sub)
+
+    def run(a):
+        from .pipeline import run_pretrain
+
+        run_pretrain(a.data, a.out_ply, a.out_csv, a.out_json, _load_params(a.params), a.checkpoint, a.init,
+                     progress=not a.no_progress)
+
+    return run
+
+
 @command("surface", "stage 2: sample the content's surface (or pass it through when disabled)")
 def cmd_surface(sub):
     sub.add_argument("scene", type=Path)

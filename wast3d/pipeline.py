@@ -157,3 +157,28 @@ def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: di
         "ratio_quantiles": {q: float(torch.quantile(ratio, q)) for q in (0.05, 0.5, 0.95)},
         "at_bound": float(((ratio <= 1 / float(params.get("bound", 2.0)) + 1e-9) |
                            (ratio >= float(params.get("bound", 2.0)) - 1e-9)).double().mean())})
+
+
+def run_pretrain(data_dir: Path, out_ply: Path, out_csv: Path, out_json: Path, params: dict,
+                 checkpoint: Path | None = None, init_ply: Path | None = None, progress: bool = True) -> None:
+    """Train a 3DGS scene from a Blender-format folder; ``holdout_every``/``background``/``max_views``
+    select the data, the rest are :class:`wast3d.pretrain.PretrainConfig` fields."""
+    from .datasets import load_blender
+    from .pretrain import PretrainConfig, Trainer
+
+    params = dict(params)
+    data = {k: params.pop(k) for k in ("holdout_every", "background", "max_views") if k in params}
+    cfg = make_config(PretrainConfig, params, "pretrain")
+    ds = load_blender(data_dir, holdout_every=data.get("holdout_every", 8),
+                      background=tuple(data.get("background", (1.0, 1.0, 1.0))), max_views=data.get("max_views"))
+    init = read_ply(init_ply) if init_ply else None
+    tr = Trainer(ds, cfg, init)
+    tr.train(checkpoint, progress=progress)
+    ev = tr.evaluate()
+    write_ply(out_ply, tr.scene())
+    with atomic_path(out_csv) as tmp:
+        pd.DataFrame(tr.log_rows).to_csv(tmp, index=False)
+    write_json(out_json, {**ev, "config": dataclasses.asdict(cfg), "data": str(data_dir),
+                          "train_views": len(ds.train), "test_views": len(ds.test)})
+    log.info("pretrain: %d Gaussians, held-out PSNR %.2f dB, SSIM %.4f, %.0f s", ev["gaussians"], ev["psnr"],
+             ev["ssim"], ev["train_seconds"])

@@ -289,19 +289,21 @@ def default_backend(device: torch.device) -> str:
 
 
 def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-              backend: str | None = None, colors: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+              backend: str | None = None, colors: torch.Tensor | None = None,
+              full_means2d: bool = False) -> dict[str, torch.Tensor]:
     """Render ``scene`` from ``cam``.
 
     Returns ``rgb`` [H, W, 3], ``alpha`` [H, W], ``depth`` [H, W] (expected z), and for densification
     ``means2d`` [V, 2] (retains grad), ``visible_ids`` [V] and ``radii`` [V].
     ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
-    scene's degree.
+    scene's degree. ``full_means2d=True`` returns gsplat's densification layout instead: ``means2d``
+    [1, N, 2] and ``radii`` [1, N, 2] for all Gaussians, with ``width``, ``height``, ``n_cameras``.
     """
     backend = backend or default_backend(scene.device)
     deg = scene.sh_degree if sh_degree is None else min(sh_degree, scene.sh_degree)
     bg = torch.as_tensor(background, dtype=scene.dtype, device=scene.device)
     if backend == "gsplat":
-        return _rasterize_gsplat(scene, cam, bg, deg, colors)
+        return _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d)
     p = project(scene.means, scene.quats, scene.scales, scene.opacities, cam)
     if colors is None:
         dirs = scene.means[p.ids] - cam.center.to(scene.means)
@@ -312,18 +314,28 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     feats = torch.cat([rgb, p.depths[:, None]], dim=1)
     gid, tile_off = bin_tiles(p, cam.width, cam.height)
     means2d = p.means2d
-    if means2d.requires_grad:
+    full = None
+    if full_means2d:
+        # [1, N, 2] for densification strategies (gsplat's layout): the visible means are read back out
+        # of it, so its .grad holds every Gaussian's screen-space gradient (zero when not visible)
+        full = means2d.new_zeros(1, len(scene), 2).index_put((torch.zeros_like(p.ids), p.ids), means2d)
+        means2d = full[0, p.ids]
+    elif means2d.requires_grad:
         means2d.retain_grad()
     fn = {"torch": composite_torch, "native": composite_native}[backend]
     out, T = fn(means2d, p.conics, feats, p.opacities, gid, tile_off, cam.width, cam.height)
     alpha = 1 - T
     image = out[..., :3] + T[..., None] * bg
     depth = torch.where(alpha > 1e-6, out[..., 3] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
-    return {"rgb": image, "alpha": alpha, "depth": depth, "means2d": means2d, "visible_ids": p.ids,
-            "radii": p.radii}
+    out = {"rgb": image, "alpha": alpha, "depth": depth, "means2d": means2d, "visible_ids": p.ids, "radii": p.radii}
+    if full_means2d:
+        radii = p.radii.new_zeros(1, len(scene), 2)
+        radii[0, p.ids] = p.radii[:, None].expand(-1, 2)
+        out.update(means2d=full, radii=radii, width=cam.width, height=cam.height, n_cameras=1, gaussian_ids=p.ids)
+    return out
 
 
-def _rasterize_gsplat(scene, cam, bg, deg, colors):  # pragma: no cover - needs CUDA
+def _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d):  # pragma: no cover - needs CUDA
     from gsplat import rasterization
 
     viewmat = cam.world_to_cam.to(scene.means)[None]
@@ -337,6 +349,8 @@ def _rasterize_gsplat(scene, cam, bg, deg, colors):  # pragma: no cover - needs 
                                  render_mode="RGB+ED", backgrounds=torch.cat([bg, bg.new_zeros(1)])[None],
                                  eps2d=EPS2D, packed=False, **kw)
     alpha = ra[0, ..., 0]
-    means2d = meta["means2d"]
-    return {"rgb": rc[0, ..., :3], "alpha": alpha, "depth": rc[0, ..., 3], "means2d": means2d,
-            "visible_ids": torch.arange(len(scene), device=scene.device), "radii": meta["radii"][0]}
+    out = {"rgb": rc[0, ..., :3], "alpha": alpha, "depth": rc[0, ..., 3], "means2d": meta["means2d"][0],
+           "visible_ids": torch.arange(len(scene), device=scene.device), "radii": meta["radii"][0]}
+    if full_means2d:
+        out.update(means2d=meta["means2d"], radii=meta["radii"], width=cam.width, height=cam.height, n_cameras=1)
+    return out

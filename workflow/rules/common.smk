@@ -113,3 +113,9 @@ def partition_of(w):
 
 def summary_runs(experiments):
     return [f"{c}__{s}/{e}" for c, s in PAIRS for e in experiments]
+
+
+def pretrain_params(scene):
+    """Style scenes are regularized (eq. 1 and 2) unless the scene's config says otherwise."""
+    is_style = scene in {s for _, s in PAIRS}
+    return {"regularize": is_style, **SCENES[scene].get("pretrain", {})}

@@ -1,0 +1,99 @@
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from wast3d.datasets import load_blender
+from wast3d.pretrain import PretrainConfig, Trainer, aniso_loss, ssim, unif_loss
+from wast3d.procedural import make_scene
+from wast3d.render import export_blender
+
+
+def test_aniso_loss_value_and_gradient():
+    """Eq. 1 on hand-made Gaussians: ratios 1, 2, 6 with r = 3 -> (0 + 0 + 3) / 3 = 1."""
+    s = torch.tensor([[1.0, 1.0, 1.0], [2.0, 1.0, 1.5], [6.0, 1.0, 2.0]], dtype=torch.float64)
+    ls = s.log().requires_grad_(True)
+    v = aniso_loss(ls, 3.0)
+    assert v.item() == pytest.approx(1.0)
+    v.backward()
+    # only the third Gaussian is penalized: d/dlog s_max (s_max/s_min) = ratio = 6, /3 Gaussians
+    assert torch.allclose(ls.grad[:2], torch.zeros(2, 3, dtype=torch.float64))
+    assert torch.allclose(ls.grad[2], torch.tensor([2.0, -2.0, 0.0], dtype=torch.float64))
+
+
+def test_unif_loss_value_and_gradient():
+    """Eq. 2 with target 1: ||(2,1,1) - 1||^2 = 1 and ||(1,1,1) - 1||^2 = 0 -> mean 0.5."""
+    s = torch.tensor([[2.0, 1.0, 1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
+    ls = s.log().requires_grad_(True)
+    v = unif_loss(ls, 1.0)
+    assert v.item() == pytest.approx(0.5)
+    v.backward()
+    # d/dlog s of (s - 1)^2 / 2 = (s - 1) s  -> 2 for the first axis of the first Gaussian
+    assert torch.allclose(ls.grad, torch.tensor([[2.0, 0, 0], [0, 0, 0]], dtype=torch.float64))
+    # target 0: the median of the scales (1 here), detached
+    assert float(unif_loss(s.log(), 0.0)) == pytest.approx(0.5)
+
+
+def test_ssim_identity_and_drop():
+    a = torch.rand(20, 24, 3)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
+    assert float(ssim(a, (a + 0.3 * torch.randn_like(a)).clamp(0, 1))) < 0.8
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ds")
+    export_blender(make_scene("style", "stones", 3000, seed=0), root, n_views=16, size=32)
+    return root
+
+
+def _cfg(**kw):
+    base = dict(iterations=120, init_points=600, refine_start=40, refine_every=40, reset_every=10_000,
+                checkpoint_every=50, sh_degree=0, max_gaussians=3000, seed=3)
+    base.update(kw)
+    return PretrainConfig(**base)
+
+
+def test_tiny_training_psnr_rises(tiny_dataset):
+    ds = load_blender(tiny_dataset, holdout_every=4, background=(1.0, 1.0, 1.0))
+    tr = Trainer(ds, _cfg())
+    before = tr.evaluate()["psnr"]
+    tr.train(progress=False)
+    ev = tr.evaluate()
+    assert ev["psnr"] > 17.0 and ev["psnr"] > before + 4
+    assert math.isfinite(ev["ssim"]) and ev["gaussians"] <= 3000
+
+
+def test_resume_equals_uninterrupted(tiny_dataset, tmp_path):
+    ds = load_blender(tiny_dataset, holdout_every=4)
+    full = Trainer(ds, _cfg(iterations=100))
+    full.train(progress=False)
+    ck = tmp_path / "run.ckpt"
+    part = Trainer(ds, _cfg(iterations=100))
+    part.train(ck, progress=False, stop_at=60)  # interrupted at 60; the last checkpoint is from step 50
+    assert ck.exists()
+    resumed = Trainer(ds, _cfg(iterations=100))
+    resumed.train(ck, progress=False)
+    assert resumed.step == 100
+    for k in full.params:
+        assert torch.equal(full.params[k], resumed.params[k]), k
+
+
+def test_regularizers_reduce_anisotropy(tiny_dataset):
+    ds = load_blender(tiny_dataset, holdout_every=4)
+    plain = Trainer(ds, _cfg(iterations=80))
+    plain.train(progress=False)
+    reg = Trainer(ds, _cfg(iterations=80, regularize=True, aniso_weight=1.0, unif_weight=10.0))
+    reg.train(progress=False)
+    ratio = lambda t: float((t.params["scales"].exp().max(1).values / t.params["scales"].exp().min(1).values).mean())  # noqa: E731
+    assert ratio(reg) < ratio(plain)
+
+
+def test_cli_bad_dataset(tmp_path):
+    (tmp_path / "transforms_train.json").write_text('{"camera_angle_x": 0.7}')
+    r = subprocess.run([sys.executable, "-m", "wast3d", "pretrain", str(tmp_path), str(tmp_path / "o.ply"),
+                        str(tmp_path / "o.csv"), str(tmp_path / "o.json")], capture_output=True, text=True)
+    assert r.returncode == 2 and "missing field 'frames'" in r.stderr
+    assert not (tmp_path / "o.ply").exists()

@@ -1,0 +1,327 @@
+"""Stage 1, regularized 3DGS pretraining from posed images (paper section 3.2, eq. 1 and 2).
+
+Optimization as in 3DGS (Kerbl et al. 2023): ``L = (1 - lambda) L1 + lambda (1 - SSIM)`` with
+lambda = 0.2, Adam with per-parameter learning rates, exponential decay of the position learning rate
+(x0.01 over the run, scaled by the scene extent), SH degree raised by one every ``sh_every`` steps up
+to ``sh_degree`` (0 is allowed: a scene without view dependence should use it).
+
+Densification and pruning: gsplat's ``DefaultStrategy`` (clone, split, prune by opacity and size,
+opacity reset), which is plain PyTorch and runs on CPU tensors: our rasterizer hands it the same
+``means2d`` [1, N, 2] / ``radii`` [1, N, 2] layout as gsplat's. ``max_gaussians`` caps the count
+(the lowest-opacity Gaussians beyond the cap are pruned after each refinement), so CPU runs stay
+bounded.
+
+The paper's regularizers, on the activated scales s = exp(log_scales) of each Gaussian:
+
+- eq. 1, anisotropy: ``L_aniso = mean_i( max(max(s_i) / min(s_i), r) - r )``;
+- eq. 2, uniform scale: ``L_unif = mean_i || s_i - (s_hat, s_hat, s_hat) ||^2``, with ``target_scale``
+  s_hat given, or (0) the median of all scales at that step, detached: a pull towards one common size
+  that does not fix its level;
+- weights ``aniso_weight`` / ``unif_weight``; on for style scenes and off for content scenes by default
+  (the paper regularizes style scenes).
+
+Initialization: a given point cloud / 3DGS PLY, or ``init_points`` random points in a cube around the
+cameras' look-at centre of half-size ``init_extent`` (0: 0.35 x the camera distance, 1.41 for
+NeRF-Synthetic, close to the reference's 1.3).
+
+Checkpoints (every ``checkpoint_every`` steps, atomically) hold the parameters, optimizer and strategy
+state, the step and every RNG state, so a resumed run equals an uninterrupted one with the same seed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .datasets import Dataset
+from .gaussians import GaussianScene, num_sh_rest
+from .rendering import rasterize
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PretrainConfig:
+    iterations: int = 5000
+    sh_degree: int = 0
+    sh_every: int = 1000
+    ssim_lambda: float = 0.2
+    lr_means: float = 1.6e-4
+    lr_means_final_factor: float = 0.01
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    init_points: int = 20000
+    init_extent: float = 0.0
+    init_opacity: float = 0.1
+    max_gaussians: int = 200_000
+    refine_start: int = 300
+    refine_stop: int = 0  # 0: iterations * 3/4
+    refine_every: int = 100
+    reset_every: int = 3000
+    grow_grad2d: float = 0.0002
+    prune_opa: float = 0.005
+    regularize: bool = False
+    aniso_weight: float = 0.1
+    aniso_ratio: float = 3.0
+    unif_weight: float = 0.1
+    target_scale: float = 0.0
+    checkpoint_every: int = 1000
+    eval_every: int = 0  # 0: only at the end
+    seed: int = 0
+
+
+# ---- losses ------------------------------------------------------------------------------------
+
+
+def _gauss_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32) -> torch.Tensor:
+    x = torch.arange(size, dtype=dtype) - size // 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(3, 1, size, size).contiguous()
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """SSIM of the reference 3DGS code (11x11 Gaussian window, sigma 1.5); a, b: [H, W, 3] in [0, 1]."""
+    x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+    w = _gauss_window(dtype=a.dtype).to(a.device)
+    mu_x = F.conv2d(x, w, padding=5, groups=3)
+    mu_y = F.conv2d(y, w, padding=5, groups=3)
+    sxx = F.conv2d(x * x, w, padding=5, groups=3) - mu_x**2
+    syy = F.conv2d(y * y, w, padding=5, groups=3) - mu_y**2
+    sxy = F.conv2d(x * y, w, padding=5, groups=3) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    m = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return m.mean()
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def aniso_loss(log_scales: torch.Tensor, r: float) -> torch.Tensor:
+    """Eq. 1: mean of max(max(s)/min(s), r) - r."""
+    s = log_scales.exp()
+    ratio = s.max(dim=1).values / s.min(dim=1).values
+    return (ratio.clamp_min(r) - r).mean()
+
+
+def unif_loss(log_scales: torch.Tensor, target: float = 0.0) -> torch.Tensor:
+    """Eq. 2: mean of ||s - (t, t, t)||^2; t = median of all scales (detached) when target is 0."""
+    s = log_scales.exp()
+    t = s.detach().median() if target <= 0 else torch.as_tensor(target, dtype=s.dtype)
+    return ((s - t) ** 2).sum(1).mean()
+
+
+# ---- parameters ----------------------------------------------------------------------------------
+
+
+def to_params(scene: GaussianScene, sh_degree: int) -> torch.nn.ParameterDict:
+    s = scene.with_sh_degree(sh_degree)
+    return torch.nn.ParameterDict({
+        "means": torch.nn.Parameter(s.means.float().clone()),
+        "scales": torch.nn.Parameter(s.log_scales.float().clone()),
+        "quats": torch.nn.Parameter(s.quats.float().clone()),
+        "opacities": torch.nn.Parameter(s.opacity_logits.float().clone()),
+        "sh0": torch.nn.Parameter(s.sh_dc[:, None, :].float().clone()),
+        "shN": torch.nn.Parameter(s.sh_rest.float().clone()),
+    })
+
+
+def to_scene(params) -> GaussianScene:
+    return GaussianScene(means=params["means"], log_scales=params["scales"], quats=params["quats"],
+                         opacity_logits=params["opacities"], sh_dc=params["sh0"][:, 0], sh_rest=params["shN"])
+
+
+def random_init(n: int, centre: torch.Tensor, extent: float, opacity: float, seed: int) -> GaussianScene:
+    from .ply import init_from_points
+
+    g = torch.Generator().manual_seed(seed)
+    pts = centre.float() + (torch.rand(n, 3, generator=g) * 2 - 1) * extent
+    rgb = torch.rand(n, 3, generator=g)
+    return init_from_points(pts, rgb, opacity=opacity)
+
+
+def look_at_centre(ds: Dataset) -> torch.Tensor:
+    """Least-squares point closest to every camera's optical axis (the point the cameras look at)."""
+    A = torch.zeros(3, 3, dtype=torch.float64)
+    b = torch.zeros(3, dtype=torch.float64)
+    for v in ds.all_views:
+        c = v.camera.center.double()
+        d = v.camera.world_to_cam[2, :3].double()
+        d = d / d.norm()
+        P = torch.eye(3, dtype=torch.float64) - d[:, None] * d[None, :]
+        A += P
+        b += P @ c
+    return torch.linalg.lstsq(A, b[:, None]).solution[:, 0].float()
+
+
+# ---- training ----------------------------------------------------------------------------------
+
+
+class Trainer:
+    def __init__(self, ds: Dataset, cfg: PretrainConfig, init: GaussianScene | None = None):
+        from gsplat.strategy import DefaultStrategy
+
+        self.ds, self.cfg = ds, cfg
+        torch.manual_seed(cfg.seed)
+        random.seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        cam_centre, cam_radius = ds.scene_center_radius()
+        self.scene_scale = cam_radius
+        self.centre = look_at_centre(ds)
+        if init is None:
+            dist = float((torch.stack([v.camera.center for v in ds.all_views]) - self.centre).norm(dim=1).mean())
+            ext = cfg.init_extent or 0.35 * dist
+            init = random_init(cfg.init_points, self.centre, ext, cfg.init_opacity, cfg.seed)
+        self.params = to_params(init, cfg.sh_degree)
+        lrs = {"means": cfg.lr_means * self.scene_scale, "scales": cfg.lr_scales, "quats": cfg.lr_quats,
+               "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN}
+        self.optimizers = {k: torch.optim.Adam([{"params": self.params[k], "lr": lr, "name": k}], eps=1e-15)
+                           for k, lr in lrs.items()}
+        self.lr_means0 = lrs["means"]
+        stop = cfg.refine_stop or int(cfg.iterations * 0.75)
+        self.strategy = DefaultStrategy(refine_start_iter=cfg.refine_start, refine_stop_iter=stop,
+                                        refine_every=cfg.refine_every, reset_every=cfg.reset_every,
+                                        grow_grad2d=cfg.grow_grad2d, prune_opa=cfg.prune_opa)
+        self.strategy.check_sanity(self.params, self.optimizers)
+        self.state = self.strategy.initialize_state(scene_scale=self.scene_scale)
+        self.step = 0
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.log_rows: list[dict] = []
+        self.elapsed = 0.0
+
+    # -- checkpointing --
+    def state_dict(self) -> dict:
+        return {"step": self.step, "params": {k: v.detach() for k, v in self.params.items()},
+                "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+                "strategy": self.state, "gen": self.gen.get_state(), "torch_rng": torch.get_rng_state(),
+                "py_rng": random.getstate(), "np_rng": np.random.get_state(), "log": self.log_rows,
+                "elapsed": self.elapsed, "config": asdict(self.cfg)}
+
+    def save(self, path: Path) -> None:
+        from .io_utils import atomic_path
+
+        with atomic_path(path) as tmp:
+            torch.save(self.state_dict(), tmp)
+
+    def load(self, path: Path) -> None:
+        d = torch.load(path, weights_only=False)
+        if d["config"] != asdict(self.cfg):
+            raise ValueError(f"{path}: checkpoint was made with another configuration; delete it to restart")
+        for k, v in d["params"].items():
+            self.params[k] = torch.nn.Parameter(v.clone())
+        for k, o in self.optimizers.items():
+            o.param_groups[0]["params"] = [self.params[k]]
+            o.load_state_dict(d["optimizers"][k])
+        self.state = d["strategy"]
+        self.step = d["step"]
+        self.gen.set_state(d["gen"])
+        torch.set_rng_state(d["torch_rng"])
+        random.setstate(d["py_rng"])
+        np.random.set_state(d["np_rng"])
+        self.log_rows = d["log"]
+        self.elapsed = d["elapsed"]
+        log.info("resumed from %s at step %d (%d Gaussians)", path, self.step, len(self.params["means"]))
+
+    # -- one step --
+    def sh_degree_now(self) -> int:
+        return min(self.cfg.sh_degree, self.step // max(self.cfg.sh_every, 1))
+
+    def train_step(self) -> dict:
+        cfg = self.cfg
+        i = int(torch.randint(len(self.ds.train), (1,), generator=self.gen))
+        view = self.ds.train[i]
+        scene = to_scene(self.params)
+        out = rasterize(scene, view.camera, background=self.ds.background, sh_degree=self.sh_degree_now(),
+                        full_means2d=True)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.state, self.step, out)
+        img = out["rgb"]
+        l1 = (img - view.image).abs().mean()
+        s = ssim(img, view.image)
+        loss = (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - s)
+        terms = {"l1": l1.item(), "ssim": s.item()}
+        if cfg.regularize:
+            la = aniso_loss(self.params["scales"], cfg.aniso_ratio)
+            lu = unif_loss(self.params["scales"], cfg.target_scale)
+            loss = loss + cfg.aniso_weight * la + cfg.unif_weight * lu
+            terms.update(aniso=la.item(), unif=lu.item())
+        loss.backward()
+        frac = self.step / max(cfg.iterations, 1)
+        self.optimizers["means"].param_groups[0]["lr"] = self.lr_means0 * cfg.lr_means_final_factor**frac
+        for o in self.optimizers.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
+        self.strategy.step_post_backward(self.params, self.optimizers, self.state, self.step, out, packed=False)
+        self._cap()
+        self.step += 1
+        return {"loss": loss.item(), "psnr": psnr(img.detach().clamp(0, 1), view.image), **terms}
+
+    def _cap(self) -> None:
+        n = len(self.params["means"])
+        if n <= self.cfg.max_gaussians:
+            return
+        from gsplat.strategy.ops import remove
+
+        op = self.params["opacities"].detach()
+        drop = torch.zeros(n, dtype=torch.bool)
+        drop[torch.argsort(op)[: n - self.cfg.max_gaussians]] = True
+        remove(self.params, self.optimizers, self.state, drop)
+
+    def train(self, ckpt: Path | None = None, progress: bool = True, stop_at: int | None = None) -> None:
+        """Train to ``cfg.iterations`` (resuming from ``ckpt`` when it exists); ``stop_at`` ends this call
+        early at that step, as an interruption would (tests use it)."""
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        if ckpt is not None and ckpt.exists():
+            self.load(ckpt)
+        bar = tqdm(total=cfg.iterations, initial=self.step, desc="pretrain", disable=not progress, mininterval=2.0)
+        t_last = time.perf_counter()
+        end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
+        while self.step < end:
+            r = self.train_step()
+            now = time.perf_counter()
+            self.elapsed += now - t_last
+            t_last = now
+            row = {"iteration": self.step, "seconds": self.elapsed, "gaussians": len(self.params["means"]), **r}
+            if cfg.eval_every and self.step % cfg.eval_every == 0:
+                row.update({f"test_{k}": v for k, v in self.evaluate().items() if k in ("psnr", "ssim")})
+                t_last = time.perf_counter()  # evaluation is not training time
+            self.log_rows.append(row)
+            bar.update(1)
+            if self.step % 50 == 0:
+                bar.set_postfix(psnr=f"{r['psnr']:.2f}", n=len(self.params["means"]))
+            if ckpt is not None and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+                self.save(ckpt)
+        bar.close()
+
+    @torch.no_grad()
+    def evaluate(self) -> dict:
+        views = self.ds.test or self.ds.train
+        scene = to_scene(self.params).detach()
+        ps, ss = [], []
+        for v in views:
+            img = rasterize(scene, v.camera, background=self.ds.background, sh_degree=self.sh_degree_now())["rgb"]
+            img = img.clamp(0, 1)
+            ps.append(psnr(img, v.image))
+            ss.append(float(ssim(img, v.image)))
+        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "views": len(views),
+                "gaussians": len(self.params["means"]), "train_seconds": self.elapsed, "steps": self.step}
+
+    def scene(self) -> GaussianScene:
+        return to_scene(self.params).detach().with_sh_degree(self.cfg.sh_degree)
+
+
+__all__ = ["PretrainConfig", "Trainer", "aniso_loss", "unif_loss", "ssim", "psnr", "num_sh_rest"]

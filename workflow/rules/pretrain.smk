@@ -1,0 +1,30 @@
+"""Stage 1: regularized 3DGS pretraining, only for scenes given as posed images."""
+
+
+rule pretrain:
+    input:
+        transforms=lambda w: f"{SCENES[w.scene]['path']}/transforms_train.json",
+    output:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        csv=f"{RESULTS}/scenes/{{scene}}/pretrain_log.csv",
+        json=f"{RESULTS}/scenes/{{scene}}/pretrain_eval.json",
+    wildcard_constraints:
+        scene=constraint(scenes_of("images")),
+    params:
+        exe=WAST3D,
+        data=lambda w: SCENES[w.scene]["path"],
+        ckpt=lambda w: f"{RESULTS}/scenes/{w.scene}/pretrain.ckpt",
+        cfg=lambda w: stage_json(pretrain_params(w.scene)),
+    resources:
+        gpu=1,
+        mem_mb=16000,
+        runtime=120,
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/pretrain/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/pretrain_{{scene}}.tsv"
+    shell:
+        "{params.exe} pretrain {params.data} {output.ply} {output.csv} {output.json} "
+        "--checkpoint {params.ckpt} --no-progress --params '{params.cfg}' 2> {log}"
