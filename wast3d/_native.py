@@ -51,7 +51,7 @@ def build(name: str, force: bool = False) -> Path:
     cc = _compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC)")
-    src = (CSRC / f"{name}.c").read_bytes()
+    src = (CSRC / f"{name}.c").read_bytes() + b"".join(h.read_bytes() for h in sorted(CSRC.glob("*.h")))
     ver = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout.splitlines()[:1]
     key = hashlib.sha256(src + repr((CFLAGS, ver, _cpu_id(), platform.machine())).encode()).hexdigest()[:16]
     out = cache_dir() / f"{name}-{key}.so"

@@ -197,7 +197,7 @@ def _composite_tile(means2d, conics, colors, opac, pix):
     return out, T
 
 
-def composite_torch(means2d, conics, colors, opac, gid, tile_off, width, height, tile=TILE):
+def composite_torch(means2d, conics, colors, opac, gid, tile_off, width, height, tile=TILE, radii=None):
     C = colors.shape[1]
     out = means2d.new_zeros(height, width, C)
     T = means2d.new_ones(height, width)
@@ -223,21 +223,22 @@ def composite_torch(means2d, conics, colors, opac, gid, tile_off, width, height,
 
 class _NativeComposite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opac, gid, tile_off, width, height, tile):
+    def forward(ctx, means2d, conics, colors, opac, gid, tile_off, width, height, tile, radii):
         from . import _native
 
         lib = _native.load("raster_cpu")
         sfx = "_f64" if means2d.dtype == torch.float64 else "_f32"
         tensors = [x.detach().contiguous() for x in (means2d, conics, colors, opac)]
         gid, tile_off = gid.contiguous(), tile_off.contiguous()
+        radii = radii.to(means2d.dtype).contiguous()
         C = colors.shape[1]
         out = means2d.new_empty(height, width, C)
         T = means2d.new_empty(height, width)
         last = torch.empty(height, width, dtype=torch.int32)
         P = _native.ptr
-        getattr(lib, "raster_fwd" + sfx)(*[P(x) for x in tensors], P(gid), P(tile_off), width, height, tile, C,
-                                         torch.get_num_threads(), P(out), P(T), P(last))
-        ctx.save_for_backward(*tensors, gid, tile_off, T, last)
+        getattr(lib, "raster_fwd" + sfx)(*[P(x) for x in tensors], P(radii), P(gid), P(tile_off), width, height,
+                                         tile, C, torch.get_num_threads(), P(out), P(T), P(last))
+        ctx.save_for_backward(*tensors, radii, gid, tile_off, T, last)
         ctx.dims = (width, height, tile, C, sfx)
         return out, T
 
@@ -246,7 +247,7 @@ class _NativeComposite(torch.autograd.Function):
         from . import _native
 
         lib = _native.load("raster_cpu")
-        means2d, conics, colors, opac, gid, tile_off, T, last = ctx.saved_tensors
+        means2d, conics, colors, opac, radii, gid, tile_off, T, last = ctx.saved_tensors
         width, height, tile, C, sfx = ctx.dims
         M = gid.numel()
         gm = means2d.new_zeros(M, 2)
@@ -256,19 +257,21 @@ class _NativeComposite(torch.autograd.Function):
         g_out = (g_out if g_out is not None else torch.zeros_like(T)[..., None].expand(-1, -1, C)).contiguous()
         g_T = (g_T if g_T is not None else torch.zeros_like(T)).contiguous()
         P = _native.ptr
-        getattr(lib, "raster_bwd" + sfx)(P(means2d), P(conics), P(colors), P(opac), P(gid), P(tile_off), width,
+        getattr(lib, "raster_bwd" + sfx)(P(means2d), P(conics), P(colors), P(opac), P(radii), P(gid), P(tile_off), width,
                                          height, tile, C, torch.get_num_threads(), P(T), P(last), P(g_out), P(g_T),
                                          P(gm), P(gc), P(gcol), P(go))
         idx = gid.long()
         V = means2d.shape[0]
         red = lambda g, *shape: means2d.new_zeros(V, *shape).index_add_(0, idx, g)  # noqa: E731
-        return red(gm, 2), red(gc, 3), red(gcol, C), red(go), None, None, None, None, None
+        return red(gm, 2), red(gc, 3), red(gcol, C), red(go), None, None, None, None, None, None
 
 
-def composite_native(means2d, conics, colors, opac, gid, tile_off, width, height, tile=TILE):
+def composite_native(means2d, conics, colors, opac, gid, tile_off, width, height, tile=TILE, radii=None):
     if colors.shape[1] > 16:
         raise ValueError("native compositor supports at most 16 channels")
-    return _NativeComposite.apply(means2d, conics, colors, opac, gid, tile_off, width, height, tile)
+    if tile > 32:
+        raise ValueError("native compositor supports tiles up to 32 pixels")
+    return _NativeComposite.apply(means2d, conics, colors, opac, gid, tile_off, width, height, tile, radii)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -323,7 +326,7 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     elif means2d.requires_grad:
         means2d.retain_grad()
     fn = {"torch": composite_torch, "native": composite_native}[backend]
-    out, T = fn(means2d, p.conics, feats, p.opacities, gid, tile_off, cam.width, cam.height)
+    out, T = fn(means2d, p.conics, feats, p.opacities, gid, tile_off, cam.width, cam.height, radii=p.radii)
     alpha = 1 - T
     image = out[..., :3] + T[..., None] * bg
     depth = torch.where(alpha > 1e-6, out[..., 3] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))

@@ -16,6 +16,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "fastmath.h"
+
 #ifndef REAL
 #define REAL float
 #define SFX _f32
@@ -29,27 +31,6 @@
 #define CLAMP_LO (-80.0)
 
 
-/* exp for x in [-80, 0]: 2^k * p(r), r = x - k ln2 in [-ln2/2, ln2/2] (Cody-Waite), degree-6
- * polynomial; relative error < 2e-7. Branch-free so loops over it vectorize. */
-static inline float fast_expf(float x) {
-    const float log2e = 1.44269504088896341f, c1 = 0.693359375f, c2 = -2.12194440e-4f;
-    float k = floorf(x * log2e + 0.5f);
-    float r = x - k * c1 - k * c2;
-    float p = 1.9875691500E-4f;
-    p = p * r + 1.3981999507E-3f;
-    p = p * r + 8.3334519073E-3f;
-    p = p * r + 4.1665795894E-2f;
-    p = p * r + 1.6666665459E-1f;
-    p = p * r + 5.0000001201E-1f;
-    p = p * r * r + r + 1.0f;
-    union { int32_t i; float f; } u;
-    u.i = ((int32_t)k + 127) << 23;
-    return p * u.f;
-}
-
-static inline double exp_real(double x) { return exp(x); }
-static inline float exp_realf(float x) { return fast_expf(x); }
-#define EXPR(x) _Generic((x), float: exp_realf, double: exp_real)(x)
 
 void FN(softmin)(const REAL *x, const REAL *yT, const REAL *h, int64_t N, int64_t M, int D, REAL eps,
                  int nthreads, REAL *f, REAL *bary) {
