@@ -9,12 +9,16 @@
 configfile: "config/config.yaml"
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scenes.smk"
 include: "workflow/rules/pretrain.smk"
 include: "workflow/rules/partition.smk"
 include: "workflow/rules/stylize.smk"
 include: "workflow/rules/render.smk"
+include: "workflow/rules/benchmarks.smk"
 
 
 rule all:

@@ -139,7 +139,7 @@ def plot(df, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ns = sorted(df.n.unique())
+    ns = sorted(int(n) for n in df.n.unique())
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     for setting, g in df.groupby("setting"):
         marker = "o" if "ours" in setting else "s"

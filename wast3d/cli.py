@@ -187,93 +187,44 @@ def cmd_pretrain(sub):
     return run
 
 
-@command("surface", "stage 2: sample the content's surface (or pass it through when disabled)")
-def cmd_surface(sub):
-    sub.add_argument("scene", type=Path)
-    sub.add_argument("out_ply", type=Path)
-    sub.add_argument("out_json", type=Path)
-    _params(sub)
+def stage_command(name: str, help_: str, positionals: tuple[str, ...], fn: str, picture=False, progress=False):
+    """A ``wast3d <stage>`` command calling ``pipeline.<fn>(*positionals, [picture,] params[, progress])``."""
 
-    def run(a):
-        from .pipeline import run_surface
+    @command(name, help_)
+    def cmd(sub):
+        for n in positionals:
+            sub.add_argument(n, type=Path)
+        if picture:
+            sub.add_argument("--picture", type=Path)
+        if progress:
+            sub.add_argument("--no-progress", action="store_true")
+        _params(sub)
 
-        run_surface(a.scene, a.out_ply, a.out_json, _load_params(a.params))
+        def run(a):
+            from . import pipeline
 
-    return run
+            args = [getattr(a, n) for n in positionals] + ([a.picture] if picture else [])
+            kw = {"progress": not a.no_progress} if progress else {}
+            getattr(pipeline, fn)(*args, _load_params(a.params), **kw)
 
+        return run
 
-@command("cluster", "stage 3: k-means of the content on position and colour")
-def cmd_cluster(sub):
-    sub.add_argument("content", type=Path)
-    sub.add_argument("out_npz", type=Path)
-    sub.add_argument("--picture", type=Path)
-    _params(sub)
-
-    def run(a):
-        from .pipeline import run_cluster
-
-        run_cluster(a.content, a.out_npz, a.picture, _load_params(a.params))
-
-    return run
+    return cmd
 
 
-@command("register", "stage 4a: per-cluster registration to the style scene (eq. 7)")
-def cmd_register(sub):
-    for n in ("content", "clusters", "style", "out_npz"):
-        sub.add_argument(n, type=Path)
-    sub.add_argument("--picture", type=Path)
-    _params(sub)
-
-    def run(a):
-        from .pipeline import run_register
-
-        run_register(a.content, a.clusters, a.style, a.out_npz, a.picture, _load_params(a.params))
-
-    return run
-
-
-@command("select", "stage 4b: style Gaussians of each cluster by kNN (eq. 8)")
-def cmd_select(sub):
-    for n in ("content", "clusters", "style", "registration", "out_npz"):
-        sub.add_argument(n, type=Path)
-    _params(sub)
-
-    def run(a):
-        from .pipeline import run_select
-
-        run_select(a.content, a.clusters, a.style, a.registration, a.out_npz, _load_params(a.params))
-
-    return run
-
-
-@command("stylize", "stage 5: minimize the Sinkhorn divergence per cluster (eq. 9)")
-def cmd_stylize(sub):
-    for n in ("content", "clusters", "style", "registration", "selection", "out_ply", "out_npz", "out_csv"):
-        sub.add_argument(n, type=Path)
-    _params(sub)
-    sub.add_argument("--no-progress", action="store_true")
-
-    def run(a):
-        from .pipeline import run_stylize
-
-        run_stylize(a.content, a.clusters, a.style, a.registration, a.selection, a.out_ply, a.out_npz, a.out_csv,
-                    _load_params(a.params), progress=not a.no_progress)
-
-    return run
-
-
-@command("rescale", "stage 6: readjust scales from the change of mean nearest-neighbour distance")
-def cmd_rescale(sub):
-    for n in ("stylized", "stylize_npz", "out_ply"):
-        sub.add_argument(n, type=Path)
-    _params(sub)
-
-    def run(a):
-        from .pipeline import run_rescale
-
-        run_rescale(a.stylized, a.stylize_npz, a.out_ply, _load_params(a.params))
-
-    return run
+stage_command("surface", "stage 2: sample the content's surface (or pass it through when disabled)",
+              ("scene", "out_ply", "out_json"), "run_surface")
+stage_command("cluster", "stage 3: k-means of the content on position and colour", ("content", "out_npz"),
+              "run_cluster", picture=True)
+stage_command("register", "stage 4a: per-cluster registration to the style scene (eq. 7)",
+              ("content", "clusters", "style", "out_npz"), "run_register", picture=True)
+stage_command("select", "stage 4b: style Gaussians of each cluster by kNN (eq. 8)",
+              ("content", "clusters", "style", "registration", "out_npz"), "run_select")
+stage_command("stylize", "stage 5: minimize the Sinkhorn divergence per cluster (eq. 9)",
+              ("content", "clusters", "style", "registration", "selection", "out_ply", "out_npz", "out_csv"),
+              "run_stylize", progress=True)
+stage_command("rescale", "stage 6: readjust scales from the change of mean nearest-neighbour distance",
+              ("stylized", "stylize_npz", "out_ply"), "run_rescale")
 
 
 @command("summarize", "one table row per (content, style, experiment) from the stage reports")

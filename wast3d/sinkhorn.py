@@ -156,13 +156,16 @@ def pick_backend(cfg: SinkhornConfig, x: torch.Tensor) -> str:
 @torch.no_grad()
 def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornConfig(),
              a: torch.Tensor | None = None, b: torch.Tensor | None = None, diameter: float | None = None,
-             init: Potentials | None = None, grad_x: bool = False, grad_y: bool = True) -> Result:
+             init: Potentials | None = None, grad_x: bool = False, grad_y: bool = True,
+             x_fixed: bool = False) -> Result:
     """Debiased Sinkhorn divergence S_eps(x, y) (or OT_eps with ``cfg.debias=False``) and its gradients.
 
     x: [N, D], y: [M, D] (features; cost |x-y|^2/2); a: [N], b: [M] weights summing to 1 (uniform if
     None). ``diameter`` sets the start of the eps schedule (computed if None). With ``init`` (the
     potentials of a previous, nearby problem at the same final eps) the schedule is skipped and
-    ``cfg.warm_iters`` symmetric updates are done at the final eps instead.
+    ``cfg.warm_iters`` updates are done at the final eps instead. ``x_fixed=True`` with ``init`` says
+    x is the same as in the previous problem: its self-potential f_aa is reused, not updated (it
+    depends on x alone, and grad_y does not involve it), saving a quarter of the work per iteration.
     """
     if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
         raise ValueError(f"sinkhorn: x [N, D] and y [M, D] must share D, got {list(x.shape)} and {list(y.shape)}")
@@ -187,7 +190,7 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
         # (Gauss-Seidel) for the cross potentials, which converges about twice as fast
         gt_ab = sm(eps, y, x, a_log + (f_ba if avg else ft_ba) / eps)
         if debias:
-            ft_aa = sm(eps, x, x, a_log + f_aa / eps)
+            ft_aa = f_aa if reuse_aa else sm(eps, x, x, a_log + f_aa / eps)
             gt_bb = sm(eps, y, y, b_log + g_bb / eps)
         else:
             ft_aa, gt_bb = f_aa, g_bb
@@ -197,15 +200,18 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
         return ft_ba, gt_ab, half(f_aa, ft_aa), half(g_bb, gt_bb)
 
     iters = 0
+    reuse_aa = False
     if init is not None and abs(init.eps - eps_final) <= 1e-12 * eps_final and len(init.f_ba) == N \
             and len(init.g_ab) == M:
         f_ba, g_ab, f_aa, g_bb = init.f_ba, init.g_ab, init.f_aa, init.g_bb
         schedule = [eps_final] * cfg.warm_iters
         n_sched = 0
+        reuse_aa = x_fixed and not grad_x
     else:
         d = diameter_of(x, y) if diameter is None else diameter
         schedule = epsilon_schedule(d, cfg.blur, cfg.scaling)
         n_sched = len(schedule)
+        reuse_aa = False
         schedule = schedule + [eps_final] * cfg.extra_iters
         eps0 = schedule[0]
         # initialization at the largest eps, from zero potentials (geomloss)
@@ -217,26 +223,18 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
     for k, eps in enumerate(schedule):
         f_ba, g_ab, f_aa, g_bb = update(eps, f_ba, g_ab, f_aa, g_bb, avg=k < n_sched)
         iters += 1
-    # last extrapolation (full update), with barycentres for the gradients
+    # last extrapolation (full update), with barycentres where a gradient is wanted
     eps = eps_final
+
+    def last(xq, yr, h, bary):
+        return sm(eps, xq, yr, h, bary=True) if bary else (sm(eps, xq, yr, h), None)
+
+    f_ba_new, T_ab = last(x, y, b_log + g_ab / eps, grad_x)
+    g_ab_new, T_ba = last(y, x, a_log + f_ba / eps, grad_y)
     need = {"x": grad_x, "y": grad_y}
-    if need["x"]:
-        f_ba_new, T_ab = sm(eps, x, y, b_log + g_ab / eps, bary=True)
-    else:
-        f_ba_new = sm(eps, x, y, b_log + g_ab / eps)
-    if need["y"]:
-        g_ab_new, T_ba = sm(eps, y, x, a_log + f_ba / eps, bary=True)
-    else:
-        g_ab_new = sm(eps, y, x, a_log + f_ba / eps)
     if debias:
-        if need["x"]:
-            f_aa_new, T_aa = sm(eps, x, x, a_log + f_aa / eps, bary=True)
-        else:
-            f_aa_new = sm(eps, x, x, a_log + f_aa / eps)
-        if need["y"]:
-            g_bb_new, T_bb = sm(eps, y, y, b_log + g_bb / eps, bary=True)
-        else:
-            g_bb_new = sm(eps, y, y, b_log + g_bb / eps)
+        f_aa_new, T_aa = (f_aa, None) if reuse_aa else last(x, x, a_log + f_aa / eps, grad_x)
+        g_bb_new, T_bb = last(y, y, b_log + g_bb / eps, grad_y)
         value = (a * (f_ba_new - f_aa_new)).sum() + (b * (g_ab_new - g_bb_new)).sum()
         gx = a[:, None] * (T_aa - T_ab) if need["x"] else None
         gy = b[:, None] * (T_bb - T_ba) if need["y"] else None

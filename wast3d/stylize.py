@@ -122,7 +122,7 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
         opt.zero_grad(set_to_none=True)
         yf = torch.cat([Y, w * (y0c + dC)], 1)
         if arap is None:
-            res = sinkhorn(xf, yf.detach(), cfg.sinkhorn, init=pot if cfg.warm_start else None)
+            res = sinkhorn(xf, yf.detach(), cfg.sinkhorn, init=pot if cfg.warm_start else None, x_fixed=True)
             pot = res.potentials
             gy = res.grad_y
             Y.grad = gy[:, :3].contiguous()

@@ -1,4 +1,4 @@
-/* Shared by the C kernels: a branch-free exp that vectorizes, and the REAL-generic dispatch.
+/* Shared by the C kernels: a branch-free exp that vectorizes, the REAL-generic dispatch and naming.
  *
  * fast_expf(x) for x in [-80, 0]: 2^k * p(r), r = x - k ln2 in [-ln2/2, ln2/2] (Cody-Waite), degree-6
  * polynomial; relative error < 2e-7. Callers clamp the argument: below about -87 float exp produces
@@ -28,5 +28,15 @@ static inline double exp_real_d(double x) { return exp(x); }
 static inline float exp_real_f(float x) { return fast_expf(x); }
 /* float: the fast polynomial; double (reference and gradcheck builds): libm's exp */
 #define EXPR(x) _Generic((x), float: exp_real_f, double: exp_real_d)(x)
+
+
+/* each kernel is compiled twice: REAL=float with symbol suffix _f32, REAL=double with _f64 */
+#ifndef REAL
+#define REAL float
+#define SFX _f32
+#endif
+#define CAT2(a, b) a##b
+#define CAT(a, b) CAT2(a, b)
+#define FN(name) CAT(name, SFX)
 
 #endif

@@ -29,14 +29,6 @@
 
 #include "fastmath.h"
 
-#ifndef REAL
-#define REAL float
-#define SFX _f32
-#endif
-#define CAT2(a, b) a##b
-#define CAT(a, b) CAT2(a, b)
-#define FN(name) CAT(name, SFX)
-
 #define ALPHA_MAX ((REAL)0.99)
 #define ALPHA_MIN ((REAL)(1.0 / 255.0))
 #define T_MIN ((REAL)1e-4)

@@ -18,14 +18,6 @@
 
 #include "fastmath.h"
 
-#ifndef REAL
-#define REAL float
-#define SFX _f32
-#endif
-#define CAT2(a, b) a##b
-#define CAT(a, b) CAT2(a, b)
-#define FN(name) CAT(name, SFX)
-
 #define BLOCK 256
 #define MAXD 16
 #define CLAMP_LO (-80.0)
