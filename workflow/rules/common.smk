@@ -119,3 +119,10 @@ def pretrain_params(scene):
     """Style scenes are regularized (eq. 1 and 2) unless the scene's config says otherwise."""
     is_style = scene in {s for _, s in PAIRS}
     return {"regularize": is_style, **SCENES[scene].get("pretrain", {})}
+
+
+for _name, _s in SCENES.items():
+    if _s["source"] == "images":
+        _reg = pretrain_params(_name)["regularize"]
+        logger.info(f"scene '{_name}': pretrained from images"
+                    + (" with the anisotropy / uniform-scale regularizers (used as a style)" if _reg else " without regularizers"))

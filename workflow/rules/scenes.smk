@@ -59,3 +59,23 @@ rule preview:
         f"{RESULTS}/benchmarks/rules/preview_{{scene}}.tsv"
     shell:
         "{params.exe} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+
+
+rule export_views:
+    input:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+    output:
+        json=f"{RESULTS}/views/{{scene}}/transforms_train.json",
+    params:
+        exe=WAST3D,
+        folder=lambda w, output: os.path.dirname(output.json),
+        views=48,
+        size=200,
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/export_views/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/export_views_{{scene}}.tsv"
+    shell:
+        "{params.exe} export-views {input.ply} {params.folder} --views {params.views} --size {params.size} 2> {log}"
