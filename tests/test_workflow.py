@@ -122,6 +122,7 @@ def test_whole_dag_artifacts(tiny_run):
 
     losses = pd.read_csv(r / "stylize/blob__peb/default/losses.csv")
     assert np.isfinite(losses.loss).all() and losses.iteration.max() == 2
+    assert (r / "stylize/blob__peb/default/losses.png").stat().st_size > 0
     table = pd.read_csv(r / "tables/summary.csv")
     assert len(table) == 1 and np.isfinite(table.loss_last).all()
     for f in (r / "benchmarks/rules").glob("*.tsv"):

@@ -129,6 +129,9 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
     rows = [{"cluster": i, "iteration": j, "loss": v} for i, c in enumerate(curves) for j, v in enumerate(c)]
     with atomic_path(out_csv) as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False)
+    from .figures import loss_curves_picture
+
+    loss_curves_picture(curves, Path(out_csv).with_suffix(".png"), f"{cfg.loss}, {cfg.features}, {len(curves)} clusters")
     write_json(Path(out_csv).with_suffix(".json"), {
         "clusters": len(curves), "gaussians": len(out), "seconds_total": float(sum(secs)),
         "seconds_per_cluster_step": float(sum(secs) / max(1, sum(len(c) for c in curves))),

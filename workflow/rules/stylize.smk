@@ -13,6 +13,8 @@ rule sinkhorn:
         npz=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylize.npz",
         csv=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/losses.csv",
         json=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/losses.json",
+        png=report(f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/losses.png",
+                   caption="../report/losses.rst", category="Results", subcategory="{experiment}"),
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("stylize", {})),
