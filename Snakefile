@@ -24,6 +24,6 @@ include: "workflow/rules/benchmarks.smk"
 rule all:
     input:
         expand(f"{RESULTS}/scenes/{{scene}}/preview.png", scene=list(SCENES)),
-        [f"{RESULTS}/stylize/{c}__{s}/{e}/preview.png" for c, s in PAIRS for e in RUN],
+        [f"{RESULTS}/stylize/{c}__{s}/{e}/{f}" for c, s in PAIRS for e in RUN for f in ("preview.png", "losses.png")],
         f"{RESULTS}/tables/{TABLE}.csv",
     default_target: True

@@ -8,6 +8,7 @@ rule sinkhorn_error_vs_time:
                    caption="../report/error_vs_time.rst", category="Benchmarks"),
     params:
         exe=sys.executable,
+        script=f"{workflow.basedir}/benchmarks/sinkhorn_error_vs_time.py",
         sizes=" ".join(str(s) for s in config.get("benchmarks", {}).get("sinkhorn_sizes", [256, 512, 1024, 2048, 4096, 8192])),
     conda:
         "../envs/wast3d.yaml"
@@ -16,7 +17,7 @@ rule sinkhorn_error_vs_time:
     benchmark:
         f"{RESULTS}/benchmarks/rules/sinkhorn_error_vs_time.tsv"
     shell:
-        "{params.exe} {workflow.basedir}/benchmarks/sinkhorn_error_vs_time.py --sizes {params.sizes} "
+        "{params.exe} {params.script} --sizes {params.sizes} "
         "--out {output.csv} > {log} 2>&1"
 
 
