@@ -116,38 +116,31 @@ def cmd_import(sub):
     return run
 
 
-@command("preview", "render a 1 x N grid of orbit views of a PLY")
-def cmd_preview(sub):
-    sub.add_argument("ply", type=Path)
-    sub.add_argument("out", type=Path)
-    sub.add_argument("--views", type=int, default=4)
-    sub.add_argument("--size", type=int, default=256)
+def render_command(name: str, help_: str, fn: str, views: int, size: int, out_help: str):
+    """A command that renders a PLY from orbit cameras with ``render.<fn>(scene, out, views, size)``."""
 
-    def run(a):
-        from .ply import read_ply
-        from .render import save_preview
+    @command(name, help_)
+    def cmd(sub):
+        sub.add_argument("ply", type=Path)
+        sub.add_argument("out", type=Path, help=out_help)
+        sub.add_argument("--views", type=int, default=views)
+        sub.add_argument("--size", type=int, default=size)
 
-        save_preview(read_ply(a.ply), a.out, a.views, a.size)
-        return 0
+        def run(a):
+            from . import render
+            from .ply import read_ply
 
-    return run
+            getattr(render, fn)(read_ply(a.ply), a.out, a.views, a.size)
+            return 0
+
+        return run
+
+    return cmd
 
 
-@command("export-views", "render a PLY into a Blender-format posed image set (orbit cameras)")
-def cmd_export(sub):
-    sub.add_argument("ply", type=Path)
-    sub.add_argument("out", type=Path, help="output folder (transforms_train.json + train/*.png)")
-    sub.add_argument("--views", type=int, default=48)
-    sub.add_argument("--size", type=int, default=200)
-
-    def run(a):
-        from .ply import read_ply
-        from .render import export_blender
-
-        export_blender(read_ply(a.ply), a.out, a.views, a.size)
-        return 0
-
-    return run
+render_command("preview", "render a 1 x N grid of orbit views of a PLY", "save_preview", 4, 256, "PNG file")
+render_command("export-views", "render a PLY into a Blender-format posed image set (orbit cameras)",
+               "export_blender", 48, 200, "output folder (transforms_train.json + train/*.png)")
 
 
 # ---- the stylization stages -----------------------------------------------------------------
