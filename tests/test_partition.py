@@ -149,3 +149,17 @@ def test_surface_sampling_skip_and_resampling(caplog):
     assert len(idx) == len(scene) and rep["skipped"] and "skipped" in caplog.text
     idx, rep = sample_surface(scene, SurfaceConfig(visibility=False, outlier_k=0, max_points=500))
     assert len(idx) == 500 and rep["removed_by_resampling"] == len(scene) - 500
+
+
+def test_removed_floaters_do_not_occlude_the_surface():
+    """Regression: visibility used to render Gaussians the outlier step had already removed; many tiny
+    floaters (each a pixel-sized footprint after the 0.3 px^2 dilation) then hid the surface."""
+    g = torch.Generator().manual_seed(1)
+    d = torch.randn(6000, 3, generator=g)
+    surf = d / d.norm(dim=1, keepdim=True)
+    floaters = (torch.rand(1500, 3, generator=g) - 0.5) * 6
+    means = torch.cat([surf, floaters])
+    scene = GaussianScene.from_activated(means, torch.full((len(means), 3), 0.004), opacities=0.95)
+    idx, rep = sample_surface(scene, SurfaceConfig(views=12, resolution=64, outlier_quantile=0.75,
+                                                   depth_tolerance=0.05))
+    assert float((idx < 6000).sum()) / 6000 > 0.9
