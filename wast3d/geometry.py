@@ -1,5 +1,5 @@
-"""Nearest-neighbour helpers shared by initialization, surface sampling, registration, selection
-and scale readjustment.
+"""Geometry helpers shared by the stages: nearest neighbours (initialization, surface sampling,
+registration, selection, scale readjustment), Kabsch rotations and frames from normals.
 
 On CPU a KD-tree (``scipy.spatial.cKDTree``, multi-threaded queries) is used; on CUDA a chunked
 ``torch.cdist`` that never materializes more than ``chunk x M`` distances.
@@ -59,3 +59,25 @@ def knn_mean_dist(points: torch.Tensor, k: int) -> torch.Tensor:
         return torch.zeros(points.shape[0], dtype=points.dtype)
     d, _ = knn(points, points, k, exclude_self=True)
     return d.mean(dim=1)
+
+
+def kabsch(H: torch.Tensor) -> torch.Tensor:
+    """H: [B,3,3] = sum g u^T -> the proper rotation R maximizing tr(R H), i.e. minimizing |R g - u|^2.
+
+    The determinant is fixed to +1; a rank-deficient H (1-2 points, collinear) still gives a rotation.
+    """
+    U, _, Vh = torch.linalg.svd(H)
+    V = Vh.transpose(-1, -2)
+    d = torch.sign(torch.linalg.det(V @ U.transpose(-1, -2)))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    return V @ D @ U.transpose(-1, -2)
+
+
+def frame_from_normal(n: torch.Tensor) -> torch.Tensor:
+    """n: [N,3] unit normals -> [N,3,3] rotations whose third column is n."""
+    helper = torch.where(n[:, 2:3].abs() < 0.9, n.new_tensor([0.0, 0.0, 1.0]), n.new_tensor([1.0, 0.0, 0.0]))
+    t1 = torch.linalg.cross(helper.expand_as(n), n)
+    t1 = t1 / t1.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    t2 = torch.linalg.cross(n, t1)
+    return torch.stack([t1, t2, n], dim=2)

@@ -93,12 +93,9 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
 
 def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
     from .registration import Registration
-    from .selection import select
+    from .selection import SelectConfig, select
 
-    k = int(params.get("k", 3))
-    unknown = set(params) - {"k"}
-    if unknown:
-        raise ValueError(f"select: unknown parameter(s) {', '.join(sorted(unknown))} (known: k)")
+    k = make_config(SelectConfig, params, "select").k
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
     reg = Registration.from_npz(load_npz(reg_npz))
@@ -141,25 +138,22 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
 
 
 def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: dict) -> None:
-    from .rescale import readjust_scales
+    from .rescale import RescaleConfig, readjust_scales
 
-    unknown = set(params) - {"k", "bound", "enabled"}
-    if unknown:
-        raise ValueError(f"rescale: unknown parameter(s) {', '.join(sorted(unknown))} (known: bound, enabled, k)")
+    cfg = make_config(RescaleConfig, params, "rescale")
     scene = read_ply(stylized_ply)
     d = load_npz(stylize_npz, required=("labels", "before_means"))
-    if not params.get("enabled", True):
+    if not cfg.enabled:
         log.info("scale readjustment disabled: the stylized scene is passed through")
         write_ply(out_ply, scene)
         write_json(Path(out_ply).with_suffix(".json"), {"skipped": True, "reason": "rescale.enabled is false"})
         return
     out, ratio = readjust_scales(scene, torch.from_numpy(d["before_means"]), torch.from_numpy(d["labels"]),
-                                 int(params.get("k", 8)), float(params.get("bound", 2.0)))
+                                 cfg.k, cfg.bound)
     write_ply(out_ply, out)
     write_json(Path(out_ply).with_suffix(".json"), {
         "ratio_quantiles": {q: float(torch.quantile(ratio, q)) for q in (0.05, 0.5, 0.95)},
-        "at_bound": float(((ratio <= 1 / float(params.get("bound", 2.0)) + 1e-9) |
-                           (ratio >= float(params.get("bound", 2.0)) - 1e-9)).double().mean())})
+        "at_bound": float(((ratio <= 1 / cfg.bound + 1e-9) | (ratio >= cfg.bound - 1e-9)).double().mean())})
 
 
 def run_pretrain(data_dir: Path, out_ply: Path, out_csv: Path, out_json: Path, params: dict,

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from .gaussians import GaussianScene, rotmat_to_quat
+from .geometry import frame_from_normal
 
 STYLES: dict[str, Callable] = {}
 CONTENTS = ("ant", "airplane", "nut", "globe", "torus", "sphere")
@@ -36,15 +37,6 @@ CONTENT_COLORS = {"ant": (0.75, 0.35, 0.2), "airplane": (0.45, 0.6, 0.85), "nut"
 def _register(fn):
     STYLES[fn.__name__.removeprefix("style_")] = fn
     return fn
-
-
-def frames_from_normals(n: np.ndarray) -> np.ndarray:
-    """n: [N, 3] unit normals -> [N, 3, 3] rotations whose third column is n."""
-    helper = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-    t1 = np.cross(helper, n)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(n, t1)
-    return np.stack([t1, t2, n], axis=2)
 
 
 def surface_gaussians(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, spacing: float | np.ndarray,
@@ -61,7 +53,7 @@ def surface_gaussians(points: np.ndarray, normals: np.ndarray, colors: np.ndarra
         t1 /= np.linalg.norm(t1, axis=1, keepdims=True).clip(1e-12)
         R = np.stack([t1, np.cross(n, t1), n], axis=2)
     else:
-        R = frames_from_normals(n)
+        R = frame_from_normal(torch.from_numpy(n)).numpy()
     sp = np.broadcast_to(np.asarray(spacing, dtype=np.float64), (len(points),))[:, None] * 0.6
     scales = np.concatenate([sp * elongation, sp, sp * flatness], axis=1)
     q = rotmat_to_quat(torch.from_numpy(R))

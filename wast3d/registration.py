@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .gaussians import quat_to_rotmat
-from .geometry import knn
+from .geometry import frame_from_normal, kabsch, knn
 
 log = logging.getLogger(__name__)
 
@@ -109,31 +109,12 @@ def _segment_mean(v: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     return s / c.view(-1, *([1] * (v.ndim - 1)))
 
 
-def _kabsch(H: torch.Tensor) -> torch.Tensor:
-    """H: [B,3,3] = sum g u^T -> the proper rotation R maximizing tr(R H), i.e. minimizing |R g - u|^2."""
-    U, _, Vh = torch.linalg.svd(H)
-    V = Vh.transpose(1, 2)
-    d = torch.sign(torch.linalg.det(V @ U.transpose(1, 2)))
-    d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
-    return V @ D @ U.transpose(1, 2)
-
-
 def _local_normals(style: torch.Tensor, at: torch.Tensor, k: int = 32) -> torch.Tensor:
     _, idx = knn(at, style, k)
     nb = style[idx]  # [B, k, 3]
     c = nb - nb.mean(1, keepdim=True)
     _, vecs = torch.linalg.eigh(c.transpose(1, 2) @ c)
     return vecs[:, :, 0]  # least-variance direction
-
-
-def _frame_from_normal(n: torch.Tensor) -> torch.Tensor:
-    """[B,3] unit normals -> [B,3,3] rotations whose third column is n."""
-    helper = torch.where(n[:, 2:3].abs() < 0.9, n.new_tensor([0.0, 0.0, 1.0]), n.new_tensor([1.0, 0.0, 0.0]))
-    t1 = torch.linalg.cross(helper.expand_as(n), n)
-    t1 = t1 / t1.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    t2 = torch.linalg.cross(n, t1)
-    return torch.stack([t1, t2, n], dim=2)
 
 
 def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, p, s_lo, s_hi, iters: int):
@@ -154,7 +135,7 @@ def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, 
         p = _segment_mean(q - s[seg] * Rg, seg, B)
         u = q - p[seg]
         H = g.new_zeros(B, 3, 3).index_add_(0, seg, g[:, :, None] * (u / s[seg])[:, None, :])
-        R_new = _kabsch(H)
+        R_new = kabsch(H)
         Rg = torch.einsum("pij,pj->pi", R_new[seg], g)
         # per-axis ratio of spreads: the least-squares slope sum(Rg u) / sum(Rg^2) is biased towards 0
         # when nearest-neighbour correspondences are noisy (regression dilution) and drove S to its bound
@@ -211,9 +192,9 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     # cluster normals (least-variance axis of each cluster)
     cov = content.new_zeros(K, 3, 3).index_add_(0, labels, cent[:, :, None] * cent[:, None, :])
     _, vecs = torch.linalg.eigh(cov + 1e-12 * torch.eye(3, dtype=cov.dtype))
-    Fc = _frame_from_normal(vecs[:, :, 0])  # columns: cluster tangent, tangent, normal
+    Fc = frame_from_normal(vecs[:, :, 0])  # columns: cluster tangent, tangent, normal
     flip = torch.where(sign == 0, 1.0, -1.0).to(style).repeat(K)
-    Fs = _frame_from_normal(n_style * flip[:, None])
+    Fs = frame_from_normal(n_style * flip[:, None])
     yaw = yaw_i.double().repeat(K) * (2 * torch.pi / cfg.yaws) + \
         torch.rand(K, generator=g, dtype=torch.float64).repeat_interleave(M) * 2 * torch.pi
     Rz = quat_to_rotmat(torch.stack([torch.cos(yaw / 2), torch.zeros_like(yaw), torch.zeros_like(yaw),

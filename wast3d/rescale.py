@@ -12,12 +12,19 @@ The bound (default 2) keeps a stray Gaussian from exploding or vanishing.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 
 from .gaussians import GaussianScene
 from .geometry import knn_mean_dist
+
+
+@dataclass
+class RescaleConfig:
+    enabled: bool = True
+    k: int = 8
+    bound: float = 2.0
 
 
 def readjust_scales(after: GaussianScene, before_means: torch.Tensor, labels: torch.Tensor, k: int = 8,

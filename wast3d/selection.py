@@ -9,9 +9,16 @@ scene), cluster i owning ``indices[offsets[i]:offsets[i+1]]``, sorted.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from .geometry import knn
+
+
+@dataclass
+class SelectConfig:
+    k: int = 3
 
 
 @torch.no_grad()

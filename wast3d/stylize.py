@@ -39,7 +39,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from .gaussians import SH_C0, GaussianScene, luminance
-from .geometry import knn
+from .geometry import kabsch, knn
 from .sinkhorn import SinkhornConfig, sinkhorn
 
 log = logging.getLogger(__name__)
@@ -154,9 +154,7 @@ class _ArapState:
         chamfer = d.min(1).values.square().mean() + d.min(0).values.square().mean()
         e = Y[self.nb] - Y[:, None, :]
         with torch.no_grad():
-            from .registration import _kabsch
-
-            Rj = _kabsch((self.e0[:, :, :, None] * e.detach()[:, :, None, :]).sum(1))
+            Rj = kabsch((self.e0[:, :, :, None] * e.detach()[:, :, None, :]).sum(1))
         rigid = (e - torch.einsum("mij,mkj->mki", Rj, self.e0)).square().sum(-1).mean()
         return chamfer + weight * rigid
 
