@@ -122,7 +122,7 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
     out, labs, curves, secs, before = stylize(content, labels, style, reg, torch.from_numpy(sel["offsets"]),
                                               torch.from_numpy(sel["indices"]), cfg, progress)
     write_ply(out_ply, out)
-    save_npz(out_npz, labels=labs.numpy(), before_means=before.means.numpy())
+    save_npz(out_npz, labels=labs.numpy(), before_means=before.numpy())
     rows = [{"cluster": i, "iteration": j, "loss": v} for i, c in enumerate(curves) for j, v in enumerate(c)]
     with atomic_path(out_csv) as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False)

@@ -118,13 +118,17 @@ def _local_normals(style: torch.Tensor, at: torch.Tensor, k: int = 32) -> torch.
 
 
 def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, p, s_lo, s_hi, iters: int):
-    """Anisotropic ICP on centred points g [P,3] belonging to transforms seg [P] (B of them)."""
+    """Anisotropic ICP on centred points g [P,3] belonging to transforms seg [P] (B of them).
+
+    Returns the best R, s, p and residual [B] of each transform, and the residual at its start [B]."""
     best = (R.clone(), s.clone(), p.clone())
     best_res = torch.full((B,), float("inf"), dtype=g.dtype)
     for it in range(iters + 1):
         y = s[seg] * torch.einsum("pij,pj->pi", R[seg], g) + p[seg]
         d, idx = knn(y, style, 1)
         res = _segment_mean(d[:, 0], seg, B)
+        if it == 0:
+            res_start = res
         better = res < best_res
         best_res = torch.where(better, res, best_res)
         best = tuple(torch.where(better.view(-1, *([1] * (b.ndim - 1))), cur, b) for cur, b in zip((R, s, p), best))
@@ -148,7 +152,7 @@ def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, 
         R = torch.where(ok[:, None, None], R_new, R)
         s = torch.where(ok[:, None], s_new, s)
         p = torch.where(ok[:, None], p, best[2])
-    return best[0], best[1], best[2], best_res
+    return best[0], best[1], best[2], best_res, res_start
 
 
 @torch.no_grad()
@@ -204,14 +208,12 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     # point instances: every subsampled point once per start
     inst_pt = sub.repeat(M)
     inst_tf = labels[sub].repeat(M) * M + torch.arange(M).repeat_interleave(len(sub))
-    R, s, p, res = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo, s_hi, cfg.iterations)
-    # initial residual of each start, for the report
-    _, _, _, res0 = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo, s_hi, 0)
+    R, s, p, res, res0 = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo, s_hi, cfg.iterations)
     best = (res.view(K, M)).argmin(1)
     pick = torch.arange(K) * M + best
     R, s, p = R[pick], s[pick], p[pick]
     # refine the best start on every point of its cluster
-    R, s, p, res_final = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations)
+    R, s, p, res_final, _ = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations)
     t = mu - torch.einsum("kji,kj->ki", R, p / s)
     reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style)
     log.info("registration: %d clusters x %d starts; residual %.3f -> %.3f style spacings (mean); s0 = %.4g",

@@ -200,7 +200,6 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
         return ft_ba, gt_ab, half(f_aa, ft_aa), half(g_bb, gt_bb)
 
     iters = 0
-    reuse_aa = False
     if init is not None and abs(init.eps - eps_final) <= 1e-12 * eps_final and len(init.f_ba) == N \
             and len(init.g_ab) == M:
         f_ba, g_ab, f_aa, g_bb = init.f_ba, init.g_ab, init.f_aa, init.g_bb
@@ -211,7 +210,7 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
         d = diameter_of(x, y) if diameter is None else diameter
         schedule = epsilon_schedule(d, cfg.blur, cfg.scaling)
         n_sched = len(schedule)
-        reuse_aa = False
+        reuse_aa = False  # a cold solve computes f_aa
         schedule = schedule + [eps_final] * cfg.extra_iters
         eps0 = schedule[0]
         # initialization at the largest eps, from zero potentials (geomloss)
@@ -231,18 +230,17 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
 
     f_ba_new, T_ab = last(x, y, b_log + g_ab / eps, grad_x)
     g_ab_new, T_ba = last(y, x, a_log + f_ba / eps, grad_y)
-    need = {"x": grad_x, "y": grad_y}
     if debias:
         f_aa_new, T_aa = (f_aa, None) if reuse_aa else last(x, x, a_log + f_aa / eps, grad_x)
         g_bb_new, T_bb = last(y, y, b_log + g_bb / eps, grad_y)
         value = (a * (f_ba_new - f_aa_new)).sum() + (b * (g_ab_new - g_bb_new)).sum()
-        gx = a[:, None] * (T_aa - T_ab) if need["x"] else None
-        gy = b[:, None] * (T_bb - T_ba) if need["y"] else None
+        gx = a[:, None] * (T_aa - T_ab) if grad_x else None
+        gy = b[:, None] * (T_bb - T_ba) if grad_y else None
     else:
         f_aa_new, g_bb_new = f_aa, g_bb
         value = (a * f_ba_new).sum() + (b * g_ab_new).sum()
-        gx = a[:, None] * (x - T_ab) if need["x"] else None
-        gy = b[:, None] * (y - T_ba) if need["y"] else None
+        gx = a[:, None] * (x - T_ab) if grad_x else None
+        gy = b[:, None] * (y - T_ba) if grad_y else None
     iters += 1
     pot = Potentials(f_ba_new, g_ab_new, f_aa_new, g_bb_new, eps_final, iters)
     if not torch.isfinite(value):

@@ -170,8 +170,8 @@ def apply_colour_offset(scene: GaussianScene, offset: torch.Tensor) -> GaussianS
 def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, offsets: torch.Tensor,
             indices: torch.Tensor, cfg: StylizeConfig, progress: bool = True):
     """Run eq. 9 over all clusters. Returns (stylized scene in the content frame, per-cluster label of
-    each output Gaussian [sum |D_i|], list of per-cluster loss curves, list of seconds, the unoptimized
-    mapped-back scene used by the scale readjustment)."""
+    each output Gaussian [sum |D_i|], list of per-cluster loss curves, list of seconds, the positions
+    before optimization mapped back to the content frame [sum |D_i|, 3], for the scale readjustment)."""
     from tqdm import tqdm
 
     K = len(offsets) - 1
@@ -189,14 +189,14 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         res = stylize_cluster(mapped[m], c_rgb[m], sub.means.float(), sub.rgb.float(), cfg)
         curves.append(res.losses)
         secs.append(res.seconds)
-        back = lambda s: s.transform(rotation=reg.R[i].T.to(s.dtype), translation=reg.t[i].to(s.dtype),  # noqa: E731
-                                     scale=(1.0 / reg.s[i]).to(s.dtype))
-        before_parts.append(back(sub))
+        lab = torch.full((len(sel),), i, dtype=torch.long)
+        before_parts.append(reg.inverse(sub.means.double(), lab))
         out = apply_colour_offset(replace(sub, means=res.positions.to(sub.dtype)), res.colour_offset)
-        parts.append(back(out))
-        labs.append(torch.full((len(sel),), i, dtype=torch.long))
+        parts.append(out.transform(rotation=reg.R[i].T.to(out.dtype), translation=reg.t[i].to(out.dtype),
+                                   scale=(1.0 / reg.s[i]).to(out.dtype)))
+        labs.append(lab)
         if progress:
             it.set_postfix(loss=f"{res.losses[-1]:.3g}" if res.losses else "-")
     if not parts:
         raise ValueError("stylize: no non-empty cluster")
-    return (GaussianScene.concat(parts), torch.cat(labs), curves, secs, GaussianScene.concat(before_parts))
+    return GaussianScene.concat(parts), torch.cat(labs), curves, secs, torch.cat(before_parts).float()
