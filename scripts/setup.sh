@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Create .venv, install wast3d with its pinned dependencies, build the native CPU kernels.
 # Idempotent: a second run only checks (a few seconds).
-#   WAST3D_TORCH   torch requirement (default torch==2.13.0: a CPU wheel on this project's machines,
-#                  PyPI's default CUDA build elsewhere; set e.g. "torch==2.14.1" on a GPU cluster).
+#   WAST3D_TORCH   torch requirements (default "torch==2.14.1 torchvision==0.29.1": open_clip needs
+#                  torchvision, and this is the newest pair that imports together on this project's
+#                  machines, where both lie on disk; a CUDA build that also runs on the CPU, ~5.5 GB).
 #   WAST3D_EXTRAS  pip extras (default "dev"; add "cuda" for gsplat, "keops" for pykeops).
 #   PYTHON         interpreter for the venv (default python3.11, else python3).
 set -euo pipefail
@@ -13,7 +14,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 PIP=(.venv/bin/python -m pip install -q --disable-pip-version-check)
 # torch first and alone, so that nothing else can pull a multi-GB CUDA build on a CPU machine
-"${PIP[@]}" "${WAST3D_TORCH:-torch==2.13.0}" 2>&1 | { grep -v "^WARNING: Location" || true; }
+"${PIP[@]}" ${WAST3D_TORCH:-torch==2.14.1 torchvision==0.29.1} 2>&1 | { grep -v "^WARNING: Location" || true; }
 "${PIP[@]}" -c requirements/constraints.txt -e ".[${WAST3D_EXTRAS:-dev}]" 2>&1 | { grep -v "^WARNING: Location" || true; }
 .venv/bin/python -c "import wast3d, torch; print('wast3d ready: torch', torch.__version__, '| cuda', torch.cuda.is_available())"
 .venv/bin/wast3d build-ext >/dev/null || echo "note: native CPU kernels not built; the PyTorch reference rasterizer will be used"
