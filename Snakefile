@@ -2,6 +2,7 @@
 
     snakemake --profile workflow/profiles/local                                 # the demo
     snakemake --profile workflow/profiles/local --config sweep=paper_ablations  # the paper's ablations
+    snakemake --profile workflow/profiles/local table1                          # only Table 1 and what it needs
     snakemake --profile workflow/profiles/local -n                              # what would run, and why
 """
 
@@ -18,6 +19,7 @@ include: "workflow/rules/pretrain.smk"
 include: "workflow/rules/partition.smk"
 include: "workflow/rules/stylize.smk"
 include: "workflow/rules/render.smk"
+include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/benchmarks.smk"
 
 
@@ -26,4 +28,7 @@ rule all:
         expand(f"{RESULTS}/scenes/{{scene}}/preview.png", scene=list(SCENES)),
         [f"{RESULTS}/stylize/{c}__{s}/{e}/{f}" for c, s in PAIRS for e in RUN for f in ("preview.png", "losses.png")],
         f"{RESULTS}/tables/{TABLE}.csv",
+        [f"{RESULTS}/render/pairs/{c}__{s}/{e}" for c, s in PAIRS for e in RUN],
+        f"{RESULTS}/tables/table1.csv",
+        [f"{RESULTS}/figures/{c}__{s}.png" for c, s in TABLE1_PAIRS],
     default_target: True

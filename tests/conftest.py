@@ -32,3 +32,26 @@ def random_scene(n=200, sh_degree=0, seed=0, dtype=torch.float32, spread=0.5):
     )
     s.sh_rest.normal_(0, 0.2, generator=g)
     return s
+
+
+TINY_CLIP = {"embed_dim": 16, "vision_cfg": {"image_size": 32, "layers": 1, "width": 32, "patch_size": 8, "head_width": 16},
+             "text_cfg": {"context_length": 8, "vocab_size": 64, "width": 16, "heads": 1, "layers": 1}}
+
+
+def write_tiny_clip(folder: Path, seed: int = 0) -> tuple[Path, Path]:
+    """A tiny randomly initialised open_clip model: its config (``wast3d-tiny-clip.json``) and weights
+    saved to a local file, as a real checkpoint would be (written once: an existing file is kept, so its
+    modification time stays). Returns (config path, checkpoint path)."""
+    import json
+
+    import open_clip
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cfg, ckpt = folder / "wast3d-tiny-clip.json", folder / "tiny-clip.pt"
+    if not cfg.exists():
+        cfg.write_text(json.dumps(TINY_CLIP))
+    open_clip.add_model_config(cfg)
+    if not ckpt.exists():
+        torch.manual_seed(seed)
+        torch.save(open_clip.create_model("wast3d-tiny-clip", pretrained=None).state_dict(), ckpt)
+    return cfg, ckpt

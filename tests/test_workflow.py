@@ -2,6 +2,7 @@
 (dry-run job lists after a parameter change), sweeps and the SLURM resource mapping."""
 
 import copy
+import json
 import re
 import subprocess
 import sys
@@ -9,6 +10,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 import yaml
@@ -29,13 +31,20 @@ TINY = {
     "run": ["default"],
     "sweeps": {"abl": {"base": "default", "variants": {"full": {}, "xyz": {"stylize": {"features": "xyz"}},
                                                         "arap": {"stylize": {"loss": "arap"}}}}},
+    "evaluation": {"render": {"frames": 4, "size": 48, "key_views": 2, "closeup_zoom": 2},
+                   "crops": {"count": 4, "size": 16},
+                   "metrics": {"patches": 8, "candidates": 16, "patch_size": 8, "patch_stride": 1, "rotations": 2,
+                               "colour_points": 256},
+                   "colour_transfer": {"max_style_points": 500}},
+    "table1": {"methods": {"default": "ours", "abl-xyz": "xyz only", "colour_ot": "colour transfer",
+                           "input": "content"}},
 }
 
 
 def snake(workdir: Path, *args, config: dict | None = None, check=True):
     if config is not None:
         (workdir / "config").mkdir(parents=True, exist_ok=True)
-        (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(config))
+        (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir), "--cores", "2", *args]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if check and r.returncode:
@@ -92,10 +101,20 @@ def test_left_out_what_a_scene_does_not_need(tmp_path):
     assert "scene 'given': left out pretraining (a trained 3DGS PLY is given)" in log
 
 
+def tiny_config(wd: Path) -> dict:
+    """TINY with CLIP from a tiny random open_clip model saved in the work folder."""
+    from conftest import write_tiny_clip
+
+    cfg_path, ckpt = write_tiny_clip(wd / "clip")
+    cfg = copy.deepcopy(TINY)
+    cfg["evaluation"]["clip"] = {"model": "wast3d-tiny-clip", "checkpoint": str(ckpt), "model_config": str(cfg_path)}
+    return cfg
+
+
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     wd = tmp_path_factory.mktemp("wf")
-    snake(wd, config=copy.deepcopy(TINY))
+    snake(wd, config=tiny_config(wd))
     return wd
 
 
@@ -118,8 +137,6 @@ def test_whole_dag_artifacts(tiny_run):
     for f in ("clusters.png",):
         assert (r / "partition/blob/default" / f).stat().st_size > 0
     assert (r / "register/blob__peb/default/registration.png").stat().st_size > 0
-    import pandas as pd
-
     losses = pd.read_csv(r / "stylize/blob__peb/default/losses.csv")
     assert np.isfinite(losses.loss).all() and losses.iteration.max() == 2
     assert (r / "stylize/blob__peb/default/losses.png").stat().st_size > 0
@@ -128,25 +145,51 @@ def test_whole_dag_artifacts(tiny_run):
     for f in (r / "benchmarks/rules").glob("*.tsv"):
         assert f.stat().st_size > 0
     assert (r / "logs/sinkhorn/blob__peb_default.log").exists()
+    # stages 7-9: renders, evaluation, the baseline, the comparison sheet and Table 1
+    for m in ("default", "abl-xyz", "colour_ot", "input"):
+        d = r / "render/pairs/blob__peb" / m
+        assert len(list((d / "frames").glob("*.png"))) == 4 and (d / "turntable.gif").stat().st_size > 0
+        assert (d / "closeup_normal.png").exists() and (d / "key_01_depth.png").exists()
+    cams = [json.loads((r / "render/pairs/blob__peb" / m / "render.json").read_text())["cameras"] for m in ("default", "input")]
+    assert cams[0] == cams[1]  # every method is seen through the content's cameras
+    assert (r / "figures/blob__peb.png").stat().st_size > 0
+    t1 = pd.read_csv(r / "tables/table1.csv")
+    assert list(t1.method) == ["ours", "xyz only", "colour transfer", "content"]
+    assert t1.clip_similarity_pct.astype(float).between(-100, 100).all()  # the tiny model's weights, from a file
+    kept = t1.run.isin(["input", "colour_ot"])  # the content's geometry, unchanged
+    assert (t1.content_chamfer[kept] == 0).all() and (t1.content_chamfer[~kept] > 0).all()
+    assert (t1.colour_sinkhorn[t1.run == "colour_ot"] < t1.colour_sinkhorn[t1.run == "input"].iloc[0]).all()
+    assert np.isfinite(t1.time_s[t1.run != "input"]).all() and (t1.peak_mem_mb[t1.run != "input"] > 0).all()
+    assert "not computed" not in (r / "tables/table1.md").read_text()
 
 
 def test_caching_reruns_only_what_a_change_affects(tiny_run):
-    assert jobs(snake(tiny_run, "-n", config=copy.deepcopy(TINY))) == {}
-    cfg = copy.deepcopy(TINY)
+    base = tiny_config(tiny_run)
+    assert jobs(snake(tiny_run, "-n", config=copy.deepcopy(base))) == {}
+    downstream = {"render_method", "evaluate", "comparison_sheet", "table1", "all"}
+    cfg = copy.deepcopy(base)
     cfg["experiments"]["default"]["stylize"]["sinkhorn"] = {"blur": 0.1}
-    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {"sinkhorn", "rescale", "result_preview", "summary", "all"}
-    cfg = copy.deepcopy(TINY)
+    j = jobs(snake(tiny_run, "-n", config=cfg))
+    # the default experiment and the sweep variant built on it; the baseline and the input are untouched
+    assert set(j) == {"sinkhorn", "rescale", "result_preview", "summary"} | downstream and j["evaluate"] == 2
+    cfg = copy.deepcopy(base)
     cfg["partitions"]["default"]["cluster"]["n_clusters"] = 2
     assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {
-        "cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary", "all"}
-    snake(tiny_run, "-n", config=copy.deepcopy(TINY))  # restore the config file
+        "cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary"} | downstream
+    cfg = copy.deepcopy(base)
+    cfg["evaluation"]["metrics"]["patches"] = 9
+    assert jobs(snake(tiny_run, "-n", config=cfg)) == {"evaluate": 4, "table1": 1, "all": 1}
+    cfg = copy.deepcopy(base)
+    cfg["evaluation"]["render"]["frames"] = 5
+    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {"render_method", "render_scene"} | downstream
+    snake(tiny_run, "-n", config=copy.deepcopy(base))  # restore the config file
 
 
 def test_sweep_runs_each_variant_in_its_own_folder(tiny_run):
-    r = snake(tiny_run, "-n", "--config", "sweep=abl", config=copy.deepcopy(TINY))
+    r = snake(tiny_run, "-n", "--config", "sweep=abl", config=tiny_config(tiny_run))
     j = jobs(r)
-    assert j["sinkhorn"] == 3 and j["summary"] == 1 and "cluster" not in j  # partition shared
-    for v in ("abl-full", "abl-xyz", "abl-arap"):
+    assert j["sinkhorn"] == 2 and j["summary"] == 1 and "cluster" not in j  # partition shared; abl-xyz was run
+    for v in ("abl-full", "abl-arap"):
         assert f"results/stylize/blob__peb/{v}/stylized.ply" in r.stdout
     assert "results/tables/abl.csv" in r.stdout
 

@@ -220,6 +220,33 @@ stage_command("rescale", "stage 6: readjust scales from the change of mean neare
               ("stylized", "stylize_npz", "out_ply"), "run_rescale")
 
 
+stage_command("render", "stage 7: turntable (PNG frames + GIF), key views and close-up with depth and normals",
+              ("scene", "reference", "out_dir"), "run_render", progress=True)
+stage_command("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
+              ("content", "style", "out_ply"), "run_colour_transfer")
+stage_command("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result",
+              ("result", "content", "style", "result_render", "style_render", "out_json"), "run_evaluate")
+
+
+@command("compare", "side-by-side comparison sheet of render folders (content, style, ours, baselines)")
+def cmd_compare(sub):
+    sub.add_argument("out_png", type=Path)
+    sub.add_argument("columns", nargs="+", help="LABEL=RENDER_FOLDER ...")
+
+    def run(a):
+        from .render import comparison_sheet
+
+        cols = []
+        for c in a.columns:
+            if "=" not in c:
+                raise ValueError(f"compare: column '{c}' is not LABEL=FOLDER")
+            label, folder = c.split("=", 1)
+            cols.append((label, Path(folder)))
+        comparison_sheet(cols, a.out_png)
+
+    return run
+
+
 @command("summarize", "one table row per (content, style, experiment) from the stage reports")
 def cmd_summarize(sub):
     sub.add_argument("results", type=Path)
@@ -236,6 +263,30 @@ def cmd_summarize(sub):
             c, s = pair.split("__")
             rows.append(run_row(a.results, c, s, exp))
         print(write_table(rows, a.out_csv, a.md).to_string(index=False))
+
+    return run
+
+
+@command("table1", "the paper's Table 1: CLIP similarity, weights-free metrics, time, memory, device per method")
+def cmd_table1(sub):
+    sub.add_argument("results", type=Path)
+    sub.add_argument("out_csv", type=Path)
+    sub.add_argument("--md", type=Path)
+    sub.add_argument("--row", nargs="+", required=True,
+                     help="CONTENT__STYLE/METHOD/PARTITION/LABEL ... (PARTITION '-' for baselines and the input)")
+
+    def run(a):
+        from .tables import table1_row, write_table
+
+        rows = []
+        for r in a.row:
+            parts = r.split("/", 3)
+            if len(parts) != 4 or "__" not in parts[0]:
+                raise ValueError(f"table1: row '{r}' is not CONTENT__STYLE/METHOD/PARTITION/LABEL")
+            pair, method, part, label = parts
+            c, s = pair.split("__", 1)
+            rows.append(table1_row(a.results, c, s, method, None if part == "-" else part, label))
+        print(write_table(rows, a.out_csv, a.md).drop(columns=["clip_status"]).to_string(index=False))
 
     return run
 

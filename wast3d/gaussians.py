@@ -299,3 +299,13 @@ def anisotropy(scales: torch.Tensor) -> torch.Tensor:
     return scales.max(dim=-1).values / scales.min(dim=-1).values.clamp_min(1e-30)
 
 
+
+
+def shortest_axis(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """Unit direction of each Gaussian's shortest axis (its normal, for a flat Gaussian; sign arbitrary).
+
+    quats: [N, 4] (w, x, y, z), scales: [N, 3] -> [N, 3].
+    """
+    R = quat_to_rotmat(quats)
+    i = scales.argmin(dim=-1)
+    return R.gather(2, i[:, None, None].expand(-1, 3, 1))[..., 0]

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from .device import resolve_device
 from .io_utils import atomic_path, load_npz, save_npz, write_json
 from .ply import read_ply, write_ply
 
@@ -134,7 +135,7 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
         "seconds_per_cluster_step": float(sum(secs) / max(1, sum(len(c) for c in curves))),
         "loss_first_mean": float(np.mean([c[0] for c in curves])) if curves and curves[0] else None,
         "loss_last_mean": float(np.mean([c[-1] for c in curves])) if curves and curves[0] else None,
-        "config": dataclasses.asdict(cfg)})
+        "device": str(resolve_device(cfg.device)), "config": dataclasses.asdict(cfg)})
 
 
 def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: dict) -> None:
@@ -179,3 +180,72 @@ def run_pretrain(data_dir: Path, out_ply: Path, out_csv: Path, out_json: Path, p
                           "train_views": len(ds.train), "test_views": len(ds.test)})
     log.info("pretrain: %d Gaussians, held-out PSNR %.2f dB, SSIM %.4f, %.0f s", ev["gaussians"], ev["psnr"],
              ev["ssim"], ev["train_seconds"])
+
+
+# ---- stages 7-9: rendering, evaluation, baselines ---------------------------------------------
+
+
+def run_render(scene_ply: Path, reference_ply: Path, out_dir: Path, params: dict, progress: bool = True) -> None:
+    """Turntable, key views and close-up of a scene, with cameras fitted to ``reference_ply``."""
+    from .render import RenderConfig, render_turntable
+
+    cfg = make_config(RenderConfig, params, "render")
+    scene = read_ply(scene_ply)
+    ref = scene if Path(reference_ply) == Path(scene_ply) else read_ply(reference_ply)
+    info = render_turntable(scene, ref, out_dir, cfg, progress)
+    log.info("render: %s -> %s (%d frames, fragment at pixel %s)", scene_ply, out_dir, info["frames"],
+             info["fragment_pixel"])
+
+
+def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, params: dict) -> None:
+    """Baseline: the content with its colours mapped to the style's by entropic OT."""
+    import time
+
+    from .baselines import ColourTransferConfig, colour_transfer
+
+    cfg = make_config(ColourTransferConfig, params, "colour_transfer")
+    content, style = read_ply(content_ply), read_ply(style_ply)
+    t = time.perf_counter()
+    out = colour_transfer(content, style, cfg)
+    secs = time.perf_counter() - t
+    write_ply(out_ply, out)
+    write_json(Path(out_ply).with_suffix(".json"), {"method": "colour_ot", "seconds": secs, "device": "cpu",
+                                                    "gaussians": len(out), "config": dataclasses.asdict(cfg)})
+
+
+def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_render: Path, style_render: Path,
+                 out_json: Path, params: dict) -> None:
+    """Weights-free metrics and CLIP crop similarity of one result; ``params``: ``metrics``, ``crops``
+    and ``clip`` blocks (:class:`~wast3d.metrics.MetricsConfig`, :class:`~wast3d.clip_eval.CropConfig`,
+    :class:`~wast3d.clip_eval.ClipConfig`)."""
+    from .clip_eval import ClipConfig, ClipUnavailable, CropConfig, clip_similarity, load_clip, random_crops
+    from .metrics import MetricsConfig, weights_free_metrics
+    from .render import read_frames
+
+    params = dict(params)
+    unknown = sorted(set(params) - {"metrics", "crops", "clip"})
+    if unknown:
+        raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: clip, crops, metrics)")
+    mcfg = make_config(MetricsConfig, params.get("metrics"), "evaluate.metrics")
+    ccfg = make_config(CropConfig, params.get("crops"), "evaluate.crops")
+    kcfg = make_config(ClipConfig, params.get("clip"), "evaluate.clip")
+    result, style = read_ply(result_ply), read_ply(style_ply)
+    content = read_ply(content_ply)
+    out = weights_free_metrics(result, content.means, style, mcfg)
+    out.update({"clip_similarity": None, "clip_status": "", "clip_model": kcfg.model})
+    crops_a, boxes_a = random_crops(read_frames(result_render), ccfg)
+    crops_b, boxes_b = random_crops(read_frames(style_render), ccfg)
+    out["crops"] = {"result": len(crops_a), "style": len(crops_b), "size": ccfg.size, "seed": ccfg.seed,
+                    "min_alpha": ccfg.min_alpha}
+    try:
+        model = load_clip(kcfg)
+    except ClipUnavailable as e:
+        out["clip_status"] = f"not computed: {e}"
+        log.warning("evaluate: CLIP similarity not computed: %s", e)
+    else:
+        out["clip_similarity"] = clip_similarity(model, crops_a, crops_b, kcfg.batch, kcfg.device)
+        out["clip_status"] = "computed"
+    out.update({"result": str(result_ply), "content": str(content_ply), "style": str(style_ply),
+                "config": {"metrics": dataclasses.asdict(mcfg), "crops": dataclasses.asdict(ccfg),
+                           "clip": dataclasses.asdict(kcfg)}})
+    write_json(out_json, out)

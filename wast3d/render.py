@@ -6,6 +6,7 @@ Pure helpers take and return tensors; the ``save_*``/``export_*`` functions are 
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -14,8 +15,8 @@ import torch
 
 from .cameras import Camera, orbit_cameras
 from .datasets import write_blender
-from .gaussians import GaussianScene
-from .io_utils import atomic_path
+from .gaussians import GaussianScene, shortest_axis
+from .io_utils import atomic_path, write_json
 from .rendering import rasterize
 
 
@@ -84,3 +85,232 @@ def export_blender(scene: GaussianScene, root: str | Path, n_views: int = 48, si
     cams = fit_orbit(scene, n_views, size, elevations_deg=(15.0, 35.0, 55.0), phase_deg=7.0)
     outs = render_views(scene, cams, background=(0.0, 0.0, 0.0))
     write_blender(root, cams, [o["rgb"] for o in outs], [o["alpha"] for o in outs])
+
+
+# ---- stage 7: turntables, close-ups, depth and normals ---------------------------------------
+
+
+@dataclass
+class RenderConfig:
+    """What ``wast3d render`` produces (all cameras fitted to the *reference* scene, so that every
+    method rendered against the same content shows the same views and the same close-up fragment).
+
+    frames: turntable frames (one orbit at ``elevation`` degrees); size: frame width = height (px);
+    key_views: frames (evenly spaced) that also get depth and normal maps; closeup_zoom: magnification
+    of the close-up (a ``size`` x ``size`` window of the first key view rendered ``zoom`` times larger,
+    centred on the fragment); normals: "axis" (each Gaussian's shortest axis, alpha-blended) or "depth"
+    (finite differences of the expected-depth map); fps: GIF frame rate.
+    """
+
+    frames: int = 24
+    size: int = 256
+    elevation: float = 30.0
+    fov: float = 40.0
+    key_views: int = 4
+    closeup_zoom: float = 3.0
+    normals: str = "axis"
+    fps: float = 8.0
+    background: tuple = (1.0, 1.0, 1.0)
+
+    def __post_init__(self):
+        if self.normals not in ("axis", "depth"):
+            raise ValueError(f"render.normals must be 'axis' or 'depth', got '{self.normals}'")
+        if self.frames < 1 or self.size < 8 or not 1 <= self.key_views <= self.frames or self.closeup_zoom < 1:
+            raise ValueError("render: need frames >= 1, size >= 8, 1 <= key_views <= frames, closeup_zoom >= 1")
+        self.background = tuple(self.background)
+
+
+def turntable_cameras(reference: GaussianScene, cfg: RenderConfig) -> list[Camera]:
+    """``cfg.frames`` cameras on one ring around the reference scene (frame 0 at azimuth 30 deg)."""
+    return fit_orbit(reference, cfg.frames, cfg.size, fov_deg=cfg.fov, elevations_deg=(cfg.elevation,))
+
+
+def key_indices(cfg: RenderConfig) -> list[int]:
+    return [round(i * cfg.frames / cfg.key_views) for i in range(cfg.key_views)]
+
+
+def fragment_pixel(alpha: torch.Tensor) -> tuple[int, int]:
+    """The close-up's centre: the foreground pixel (alpha > 0.5) nearest the alpha-weighted centroid.
+
+    alpha: [H, W] -> (x, y). Falls back to the image centre on an empty render.
+    """
+    H, W = alpha.shape
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    a = alpha.detach().double().cpu()
+    if float(a.sum()) < 1e-6:
+        return W // 2, H // 2
+    cy, cx = float((a * ys).sum() / a.sum()), float((a * xs).sum() / a.sum())
+    d = (ys - cy) ** 2 + (xs - cx) ** 2
+    d[a <= 0.5] = float("inf")
+    if not torch.isfinite(d).any():
+        return round(cx), round(cy)
+    i = int(d.argmin())
+    return i % W, i // W
+
+
+def closeup_camera(cam: Camera, pixel: tuple[int, int], zoom: float) -> Camera:
+    """A ``cam.width`` x ``cam.height`` window of ``cam`` at ``zoom`` times the resolution, centred on
+    ``pixel`` (x, y) of the original image (clamped to stay inside the zoomed image)."""
+    big = cam.scaled(zoom)
+    x0 = min(max(0, round((pixel[0] + 0.5) * zoom - cam.width / 2)), big.width - cam.width)
+    y0 = min(max(0, round((pixel[1] + 0.5) * zoom - cam.height / 2)), big.height - cam.height)
+    return big.crop(x0, y0, cam.width, cam.height)
+
+
+def normal_colors(scene: GaussianScene, cam: Camera) -> torch.Tensor:
+    """Each Gaussian's shortest axis in camera coordinates, flipped to face the camera: [N, 3]."""
+    n = shortest_axis(scene.quats, scene.scales)
+    R = cam.world_to_cam[:3, :3].to(n)
+    n_cam = n @ R.T
+    view = scene.means @ R.T + cam.world_to_cam[:3, 3].to(n)  # camera-frame position (ray direction)
+    flip = ((n_cam * view).sum(-1, keepdim=True) > 0).to(n)
+    return n_cam * (1 - 2 * flip)
+
+
+def normals_from_depth(depth: torch.Tensor, alpha: torch.Tensor, cam: Camera) -> torch.Tensor:
+    """Camera-frame normals [H, W, 3] from the expected-depth map by central differences of the
+    back-projected points (zero where alpha <= 0.5 or a neighbour is background)."""
+    H, W = depth.shape
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=depth.dtype), torch.arange(W, dtype=depth.dtype), indexing="ij")
+    P = torch.stack([(xs + 0.5 - cam.cx) / cam.fx * depth, (ys + 0.5 - cam.cy) / cam.fy * depth, depth], -1)
+    dx = torch.zeros_like(P)
+    dy = torch.zeros_like(P)
+    dx[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dy[1:-1] = P[2:] - P[:-2]
+    n = torch.linalg.cross(dx, dy)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    n = torch.where((n[..., 2:] > 0), -n, n)  # face the camera (camera looks along +z)
+    fg = alpha > 0.5
+    ok = fg.clone()
+    ok[:, 1:-1] &= fg[:, 2:] & fg[:, :-2]
+    ok[1:-1] &= fg[2:] & fg[:-2]
+    ok[0], ok[-1], ok[:, 0], ok[:, -1] = False, False, False, False
+    return n * ok[..., None]
+
+
+def normal_image(n: torch.Tensor, alpha: torch.Tensor, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """[H, W, 3] camera-frame normals -> the usual picture: RGB = (x, -y, -z) / 2 + 1/2 (OpenGL look:
+    facing the camera is blue), background where alpha is low."""
+    rgb = torch.stack([n[..., 0], -n[..., 1], -n[..., 2]], -1) * 0.5 + 0.5
+    a = alpha.clamp(0, 1)[..., None]
+    return rgb * a + (1 - a) * torch.as_tensor(background, dtype=rgb.dtype)
+
+
+def depth_image(depth: torch.Tensor, alpha: torch.Tensor, near: float, far: float, cmap: str = "turbo") -> np.ndarray:
+    """Expected depth -> uint8 [H, W, 3] through a colour map on [near, far] (white background)."""
+    import matplotlib
+
+    t = ((depth - near) / max(far - near, 1e-12)).clamp(0, 1).detach().cpu().numpy()
+    rgb = matplotlib.colormaps[cmap](t)[..., :3]
+    a = alpha.clamp(0, 1).detach().cpu().numpy()[..., None]
+    return ((rgb * a + (1 - a)) * 255 + 0.5).astype(np.uint8)
+
+
+@torch.no_grad()
+def render_maps(scene: GaussianScene, cam: Camera, cfg: RenderConfig) -> dict[str, torch.Tensor]:
+    """RGB [H, W, 3], alpha [H, W], depth [H, W] and camera-frame normals [H, W, 3] of one view."""
+    out = rasterize(scene, cam, background=cfg.background)
+    if cfg.normals == "axis":
+        nrm = rasterize(scene, cam, background=(0.0, 0.0, 0.0), colors=normal_colors(scene, cam))["rgb"]
+        nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    else:
+        nrm = normals_from_depth(out["depth"], out["alpha"], cam)
+    return {"rgb": out["rgb"], "alpha": out["alpha"], "depth": out["depth"], "normal": nrm}
+
+
+@torch.no_grad()
+def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
+                     progress: bool = False) -> dict:
+    """Write the turntable and close-up of ``scene`` (cameras from ``reference``) under ``out_dir``:
+
+    ``frames/NNN.png`` (RGBA, straight alpha), ``turntable.gif``, ``key_NN_{rgb,depth,normal}.png``,
+    ``closeup_{rgb,depth,normal}.png`` and ``render.json`` (cameras, fragment, depth range, settings).
+    """
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    (out_dir / "frames").mkdir(parents=True, exist_ok=True)
+    cams = turntable_cameras(reference, cfg)
+    centre, radius = scene_bounds(reference)
+    dist = float((cams[0].center.to(centre) - centre).norm())
+    near, far = dist - radius, dist + radius
+    keys = key_indices(cfg)
+    ref_alpha = rasterize(reference, cams[keys[0]], background=cfg.background)["alpha"]
+    pixel = fragment_pixel(ref_alpha)
+    gif = []
+    for i, cam in enumerate(tqdm(cams, desc="turntable", disable=not progress)):
+        if i in keys:
+            m = render_maps(scene, cam, cfg)
+            k = keys.index(i)
+            save_png(out_dir / f"key_{k:02d}_rgb.png", to_uint8(m["rgb"]))
+            save_png(out_dir / f"key_{k:02d}_depth.png", depth_image(m["depth"], m["alpha"], near, far))
+            save_png(out_dir / f"key_{k:02d}_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
+        else:
+            m = rasterize(scene, cam, background=cfg.background)
+        a = m["alpha"].clamp(0, 1)
+        bg = torch.as_tensor(cfg.background, dtype=m["rgb"].dtype)
+        straight = ((m["rgb"] - (1 - a[..., None]) * bg) / a[..., None].clamp_min(1e-6)).clamp(0, 1)
+        save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(torch.cat([straight, a[..., None]], -1)))
+        gif.append(to_uint8(m["rgb"]))
+    with atomic_path(out_dir / "turntable.gif") as tmp:
+        iio.imwrite(tmp, np.stack(gif), extension=".gif", duration=1000.0 / cfg.fps, loop=0)
+    cu = closeup_camera(cams[keys[0]], pixel, cfg.closeup_zoom)
+    m = render_maps(scene, cu, cfg)
+    save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
+    save_png(out_dir / "closeup_depth.png", depth_image(m["depth"], m["alpha"], near, far))
+    save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
+    info = {"frames": cfg.frames, "key_frames": keys, "fragment_pixel": list(pixel), "depth_range": [near, far],
+            "normals": cfg.normals, "gaussians": len(scene), "config": asdict(cfg),
+            "cameras": [{"world_to_cam": c.world_to_cam.tolist(), "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+                         "width": c.width, "height": c.height} for c in cams + [cu]]}
+    write_json(out_dir / "render.json", info)
+    return info
+
+
+def read_frames(folder: str | Path) -> torch.Tensor:
+    """``frames/*.png`` (RGBA) written by :func:`render_turntable` -> [V, H, W, 4] float in [0, 1]."""
+    files = sorted((Path(folder) / "frames").glob("*.png"))
+    if not files:
+        raise FileNotFoundError(f"{folder}: no turntable frames (frames/*.png); run `wast3d render` first")
+    imgs = [iio.imread(f) for f in files]
+    for f, im in zip(files, imgs):
+        if im.ndim != 3 or im.shape[2] != 4 or im.shape != imgs[0].shape:
+            raise ValueError(f"{f}: expected an RGBA frame of shape {imgs[0].shape}, got {im.shape}")
+    return torch.from_numpy(np.stack(imgs)).float() / 255.0
+
+
+def label_image(img: np.ndarray, text: str, height: int = 22) -> np.ndarray:
+    """``img`` with a white caption strip of ``height`` px above it."""
+    from PIL import Image, ImageDraw
+
+    strip = Image.new("RGB", (img.shape[1], height), (255, 255, 255))
+    ImageDraw.Draw(strip).text((4, 4), text, fill=(0, 0, 0))
+    return np.concatenate([np.asarray(strip), img[..., :3]], axis=0)
+
+
+SHEET_ROWS = ("key_00_rgb", "key_01_rgb", "closeup_rgb", "closeup_normal", "closeup_depth")
+
+
+def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, rows=SHEET_ROWS) -> None:
+    """Side-by-side sheet: one column per (label, render folder), one row per picture name in ``rows``
+    (missing pictures are left white)."""
+    cells = []
+    shape = None
+    for _, folder in columns:
+        for r in rows:
+            p = Path(folder) / f"{r}.png"
+            if p.exists():
+                shape = iio.imread(p).shape[:2]
+                break
+        if shape:
+            break
+    if shape is None:
+        raise FileNotFoundError("comparison sheet: none of the render folders has pictures")
+    for r in rows:
+        for label, folder in columns:
+            p = Path(folder) / f"{r}.png"
+            img = iio.imread(p)[..., :3] if p.exists() else np.full((*shape, 3), 255, np.uint8)
+            cells.append(label_image(img, f"{label} | {r}"))
+    h = max(c.shape[0] for c in cells)
+    cells = [np.pad(c, ((h - c.shape[0], 0), (0, 0), (0, 0)), constant_values=255) for c in cells]
+    save_png(out, grid(cells, len(columns)))

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
+from .device import resolve_device
 from .gaussians import SH_C0, GaussianScene, luminance
 from .geometry import kabsch, knn
 from .sinkhorn import SinkhornConfig, sinkhorn
@@ -101,8 +102,7 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
     """One term of eq. 9. x_*: content cluster in the style frame [N,3]; y_*: its style Gaussians [M,3]."""
     t0 = time.perf_counter()
     dt = torch.float64 if cfg.dtype == "float64" else torch.float32
-    dev = torch.device("cuda" if cfg.device == "auto" and torch.cuda.is_available() else
-                       ("cpu" if cfg.device == "auto" else cfg.device))
+    dev = resolve_device(cfg.device)
     c, r = normalize_pair(x_pos.double())
     xn = ((x_pos.double() - c) / r).to(dev, dt)
     yn = ((y_pos.double() - c) / r).to(dev, dt)

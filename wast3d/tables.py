@@ -62,3 +62,42 @@ def to_markdown(df: pd.DataFrame) -> str:
     fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else ("" if v is None else str(v))  # noqa: E731
     head = "| " + " | ".join(df.columns) + " |\n|" + "---|" * len(df.columns) + "\n"
     return head + "".join("| " + " | ".join(fmt(v) for v in r) + " |\n" for r in df.itertuples(index=False))
+
+
+# ---- Table 1 ---------------------------------------------------------------------------------
+
+METRIC_COLUMNS = ("content_chamfer", "style_patch_chamfer", "style_patch_sinkhorn", "tilt_w1_deg", "aniso_w1",
+                  "colour_sinkhorn")
+
+
+def method_benchmarks(results: Path, content: str, style: str, method: str, partition: str | None) -> list[Path]:
+    """The Snakemake benchmark files of the stages a method needs beyond the shared ones (pretraining,
+    surface sampling and k-means are shared by every method and not counted)."""
+    b = Path(results) / "benchmarks" / "rules"
+    pair = f"{content}__{style}"
+    if method == "colour_ot":
+        return [b / f"colour_transfer_{pair}.tsv"]
+    if partition is None:  # the unstylized input
+        return []
+    return [b / f"register_{pair}_{partition}.tsv", b / f"select_{pair}_{partition}.tsv",
+            b / f"sinkhorn_{pair}_{method}.tsv", b / f"rescale_{pair}_{method}.tsv"]
+
+
+def table1_row(results: Path, content: str, style: str, method: str, partition: str | None, label: str) -> dict:
+    """One row of Table 1 from ``results/eval/{content}__{style}/{method}.json`` and benchmark files."""
+    ev = _read(Path(results) / "eval" / f"{content}__{style}" / f"{method}.json")
+    benches = [_bench(p) for p in method_benchmarks(results, content, style, method, partition)]
+    if method == "colour_ot":
+        device = _read(Path(results) / "stylize" / f"{content}__{style}" / "colour_ot" / "final.json").get("device")
+    elif partition is not None:
+        device = _read(Path(results) / "stylize" / f"{content}__{style}" / method / "losses.json").get("device")
+    else:
+        device = None
+    clip = ev.get("clip_similarity")
+    row = {"content": content, "style": style, "method": label, "run": method,
+           "clip_similarity_pct": clip if clip is not None else "not computed",
+           **{k: ev.get(k) for k in METRIC_COLUMNS}, "gaussians": ev.get("gaussians"),
+           "time_s": sum(x["seconds"] for x in benches) if benches and all(benches) else None,
+           "peak_mem_mb": max(x["max_rss_mb"] for x in benches) if benches and all(benches) else None,
+           "device": device, "clip_status": ev.get("clip_status")}
+    return row

@@ -4,6 +4,7 @@ stages each scene needs (logged when a stage is left out)."""
 import copy
 import os
 import json
+import shlex
 import sys
 
 from snakemake.utils import validate
@@ -28,22 +29,23 @@ def deep_merge(base, over):
 
 
 def expand_experiments():
-    """The named experiments, plus the variants of the sweep given by --config sweep=NAME."""
+    """The named experiments plus every sweep's variants (named SWEEP-VARIANT); the experiments to run
+    are ``run``, or the variants of the sweep given by --config sweep=NAME."""
     exps = {name: {"partition": "default", **e} for name, e in config.get("experiments", {"default": {}}).items()}
+    sweeps = config.get("sweeps", {})
+    variants = {}
+    for sname, s in sweeps.items():
+        if s["base"] not in exps:
+            raise ValueError(f"config: sweeps.{sname}.base '{s['base']}' is not defined under 'experiments'")
+        variants[sname] = [f"{sname}-{v}" for v in s["variants"]]
+        for vname, over in s["variants"].items():
+            exps[f"{sname}-{vname}"] = deep_merge(exps[s["base"]], over)
     sweep = config.get("sweep")
     if not sweep:
         return exps, list(config.get("run", list(exps)))
-    sweeps = config.get("sweeps", {})
     if sweep not in sweeps:
         raise ValueError(f"config: sweep '{sweep}' is not defined under 'sweeps' (defined: {', '.join(sweeps) or 'none'})")
-    s = sweeps[sweep]
-    base = exps[s["base"]]
-    names = []
-    for vname, over in s["variants"].items():
-        name = f"{sweep}-{vname}"
-        exps[name] = deep_merge(base, over)
-        names.append(name)
-    return exps, names
+    return exps, variants[sweep]
 
 
 EXPERIMENTS, RUN = expand_experiments()
@@ -60,6 +62,26 @@ for _r in RUN:
 
 CONTENTS = sorted({c for c, _ in PAIRS})
 
+# stages 7-9: Table 1's methods are experiments, the colour-transfer baseline or the unstylized input
+BASELINES = ("colour_ot", "input")
+EVALUATION = config.get("evaluation", {})
+TABLE1 = config.get("table1", {})
+TABLE1_PAIRS = [tuple(p) for p in TABLE1.get("pairs", PAIRS)]
+TABLE1_METHODS = TABLE1.get("methods", {"default": "WaSt-3D (ours)", "colour_ot": "colour transfer (OT)",
+                                        "input": "content (no stylization)"})
+for _e in EXPERIMENTS:
+    if _e in BASELINES:
+        raise ValueError(f"config: experiment name '{_e}' is reserved for a baseline ({', '.join(BASELINES)})")
+for _m in TABLE1_METHODS:
+    if _m not in EXPERIMENTS and _m not in BASELINES:
+        raise ValueError(f"config: table1.methods: '{_m}' is neither an experiment nor one of {', '.join(BASELINES)}")
+for _c, _s in TABLE1_PAIRS:
+    for _n in (_c, _s):
+        if _n not in SCENES:
+            raise ValueError(f"config: table1.pairs: scene '{_n}' is not defined under 'scenes'")
+METHODS = list(EXPERIMENTS) + list(BASELINES)
+
+
 
 def scenes_of(source):
     return [name for name, s in SCENES.items() if s["source"] == source]
@@ -68,6 +90,11 @@ def scenes_of(source):
 def constraint(names):
     """A wildcard constraint matching exactly ``names`` (never matches when empty)."""
     return "|".join(names) if names else "(?!x)x"
+
+
+wildcard_constraints:
+    experiment=constraint(list(EXPERIMENTS)),
+    method=constraint(METHODS),
 
 
 def needs_surface(scene):
@@ -126,3 +153,22 @@ for _name, _s in SCENES.items():
         _reg = pretrain_params(_name)["regularize"]
         logger.info(f"scene '{_name}': pretrained from images"
                     + (" with the anisotropy / uniform-scale regularizers (used as a style)" if _reg else " without regularizers"))
+
+
+def method_ply(w):
+    """The Gaussians a method produced for a pair (the input: the content points k-means saw)."""
+    if w.method == "input":
+        return content_points(w.content)
+    return f"{RESULTS}/stylize/{w.content}__{w.style}/{w.method}/final.ply"
+
+
+def table1_rows():
+    """CONTENT__STYLE/METHOD/PARTITION/LABEL per row of Table 1, shell-quoted."""
+    return " ".join(shlex.quote(f"{c}__{s}/{m}/{EXPERIMENTS[m]['partition'] if m in EXPERIMENTS else '-'}/{label}")
+                    for c, s in TABLE1_PAIRS for m, label in TABLE1_METHODS.items())
+
+
+def clip_inputs():
+    """The CLIP checkpoint (and model config) are inputs of evaluate when set, so a change re-runs it."""
+    clip = EVALUATION.get("clip", {})
+    return [p for p in (clip.get("checkpoint"), clip.get("model_config")) if p]

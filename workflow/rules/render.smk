@@ -22,6 +22,8 @@ rule result_preview:
 
 
 rule summary:
+    wildcard_constraints:
+        table=constraint(["summary"] + list(config.get("sweeps", {}))),
     input:
         lambda w: [f"{RESULTS}/stylize/{r}/final.json" for r in summary_runs(table_experiments(w.table))],
     output:

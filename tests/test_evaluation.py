@@ -1,0 +1,352 @@
+"""Stages 7-9: renders (turntable, close-ups, depth, normals), CLIP crop similarity with a tiny random
+open_clip model, the weights-free metrics, the colour-transfer baseline and Table 1."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import random_scene, write_tiny_clip
+
+from wast3d.cameras import Camera, look_at
+from wast3d.clip_eval import (ClipConfig, ClipUnavailable, CropConfig, clip_similarity, embed, load_clip,
+                              random_crops)
+from wast3d.gaussians import GaussianScene, quat_multiply
+from wast3d.metrics import (MetricsConfig, chamfer, content_chamfer, principal_frames, style_metrics,
+                            weights_free_metrics)
+from wast3d.procedural import make_scene
+
+
+def frames_with_blob(V=3, H=40, W=50, seed=0):
+    """RGBA frames [V, H, W, 4] with an opaque disc in each (random colours)."""
+    g = torch.Generator().manual_seed(seed)
+    f = torch.zeros(V, H, W, 4)
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    for v in range(V):
+        disc = ((ys - 20) ** 2 + (xs - 15 - 5 * v) ** 2) < 12**2
+        f[v, ..., :3] = torch.rand(H, W, 3, generator=g)
+        f[v, ..., 3] = disc.float()
+    return f
+
+
+# ---- crops -----------------------------------------------------------------------------------
+
+
+def test_crops_are_deterministic_by_seed_and_on_the_foreground():
+    f = frames_with_blob()
+    cfg = CropConfig(count=12, size=8, min_alpha=0.9, seed=3)
+    a, ba = random_crops(f, cfg)
+    b, bb = random_crops(f, cfg)
+    assert torch.equal(a, b) and torch.equal(ba, bb)
+    c, bc = random_crops(f, CropConfig(count=12, size=8, min_alpha=0.9, seed=4))
+    assert not torch.equal(ba, bc)
+    assert a.shape == (12, 8, 8, 3)
+    for v, y, x in ba.tolist():
+        assert f[v, y:y + 8, x:x + 8, 3].mean() >= 0.9
+        w = f[v, y:y + 8, x:x + 8]
+        on_white = w[..., :3] * w[..., 3:] + (1 - w[..., 3:])
+        assert torch.allclose(a[list(map(tuple, ba.tolist())).index((v, y, x))], on_white)
+
+
+def test_crops_errors():
+    f = frames_with_blob()
+    with pytest.raises(ValueError, match="exceeds the frame size"):
+        random_crops(f, CropConfig(size=64))
+    f[..., 3] = 0
+    with pytest.raises(ValueError, match="no foreground"):
+        random_crops(f, CropConfig(count=2, size=8))
+
+
+# ---- CLIP ------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_clip(tmp_path_factory):
+    return write_tiny_clip(tmp_path_factory.mktemp("clip"))
+
+
+def test_clip_tiny_model_end_to_end_and_checkpoint_round_trip(tiny_clip):
+    import open_clip
+
+    cfg_path, ckpt = tiny_clip
+    torch.manual_seed(0)
+    fresh = open_clip.create_model("wast3d-tiny-clip", pretrained=None).eval()  # the same random init
+    loaded = load_clip(ClipConfig(model="wast3d-tiny-clip", checkpoint=str(ckpt), model_config=str(cfg_path)))
+    crops_a, _ = random_crops(frames_with_blob(seed=0), CropConfig(count=6, size=16))
+    crops_b, _ = random_crops(frames_with_blob(seed=1), CropConfig(count=5, size=16, seed=1))
+    ea = embed(loaded, crops_a)
+    assert ea.shape == (6, 16) and torch.allclose(ea.norm(dim=1), torch.ones(6, dtype=ea.dtype))
+    assert torch.allclose(ea, embed(fresh, crops_a), atol=1e-6)  # weights really came from the file
+    s_ab, s_ba = clip_similarity(loaded, crops_a, crops_b), clip_similarity(loaded, crops_b, crops_a)
+    assert math.isfinite(s_ab) and -100 <= s_ab <= 100 and s_ab == pytest.approx(s_ba, abs=1e-9)
+    ea, eb = embed(loaded, crops_a), embed(loaded, crops_b)
+    assert s_ab == pytest.approx(100 * float((ea @ eb.T).mean()), abs=1e-9)
+    # a different random model gives different embeddings: the checkpoint is what decides
+    torch.manual_seed(1)
+    other = open_clip.create_model("wast3d-tiny-clip", pretrained=None).eval()
+    assert not torch.allclose(embed(other, crops_a), ea, atol=1e-3)
+
+
+def test_clip_unavailable_is_reported_never_downloaded(tmp_path, tiny_clip):
+    with pytest.raises(ClipUnavailable, match="no clip.checkpoint"):
+        load_clip(ClipConfig())
+    with pytest.raises(ClipUnavailable, match="is not a file"):
+        load_clip(ClipConfig(checkpoint=str(tmp_path / "missing.pt")))
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_clip(ClipConfig(model="wast3d-tiny-clip", checkpoint=str(bad), model_config=str(tiny_clip[0])))
+    with pytest.raises(ValueError, match="unknown open_clip architecture"):
+        load_clip(ClipConfig(model="no-such-net", checkpoint=str(tiny_clip[1])))
+
+
+# ---- weights-free metrics --------------------------------------------------------------------
+
+SMALL = MetricsConfig(patches=24, candidates=48, patch_size=12, patch_stride=2, rotations=4, colour_points=512)
+
+
+@pytest.fixture(scope="module")
+def pebbles():
+    return make_scene("style", "pebbles", 3000, seed=0)
+
+
+def test_metrics_are_zero_for_identical_inputs(pebbles):
+    m = weights_free_metrics(pebbles, pebbles.means, pebbles, SMALL)
+    assert m["content_chamfer"] == 0
+    for k in ("style_patch_chamfer", "tilt_w1_deg", "aniso_w1"):
+        assert m[k] == 0, k
+    for k in ("style_patch_sinkhorn", "colour_sinkhorn"):
+        assert abs(m[k]) < 1e-6, k
+
+
+def perturb(scene: GaussianScene, what: str, amount: float, seed=1) -> GaussianScene:
+    g = torch.Generator().manual_seed(seed)
+    s = scene.clone()
+    n = len(s)
+    if what == "means":
+        h = float(content_spacing(scene))
+        s.means = s.means + amount * h * torch.randn(n, 3, generator=g)
+    elif what == "rotation":  # random rotations of angle ~amount (radians)
+        axis = torch.randn(n, 3, generator=g)
+        axis = axis / axis.norm(dim=1, keepdim=True)
+        half = 0.5 * amount * torch.rand(n, 1, generator=g)
+        q = torch.cat([half.cos(), axis * half.sin()], 1)
+        s.quats = quat_multiply(q, s.quats)
+    elif what == "scale":
+        s.log_scales = s.log_scales + amount * torch.randn(n, 3, generator=g)
+    elif what == "colour":
+        s.sh_dc = s.sh_dc + amount * torch.randn(n, 3, generator=g)
+    return s
+
+
+def content_spacing(scene):
+    from wast3d.geometry import knn_mean_dist
+
+    return knn_mean_dist(scene.means.double(), 1).mean()
+
+
+@pytest.mark.parametrize("what, keys", [
+    ("means", ("content_chamfer", "style_patch_chamfer", "style_patch_sinkhorn")),
+    ("rotation", ("tilt_w1_deg",)),
+    ("scale", ("aniso_w1",)),
+    ("colour", ("colour_sinkhorn",)),
+])
+def test_metrics_grow_with_perturbation(pebbles, what, keys):
+    vals = []
+    for amount in (0.0, 0.3, 1.5):
+        r = perturb(pebbles, what, amount)
+        vals.append(weights_free_metrics(r, pebbles.means, pebbles, SMALL))
+    for k in keys:
+        v = [x[k] for x in vals]
+        assert v[0] < 1e-6 and v[0] < v[1] < v[2], (k, v)
+
+
+def test_chamfer_and_patch_normalization_invariances():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(200, 3, generator=g, dtype=torch.float64)
+    # a shift far below the point spacing: every nearest neighbour is the point's own copy
+    assert chamfer(x, x) == 0 and chamfer(x, x + 1e-4) == pytest.approx(1e-4 * math.sqrt(3), rel=1e-6)
+    assert content_chamfer(2 * x, 2 * x + 2e-4) == pytest.approx(content_chamfer(x, x + 1e-4), rel=1e-6)  # spacing units
+    p = torch.randn(5, 30, 3, generator=g, dtype=torch.float64) * torch.tensor([3.0, 1.0, 0.2], dtype=torch.float64)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    moved = 7.0 * p @ q.T + torch.tensor([1.0, -2.0, 5.0], dtype=torch.float64)
+    assert torch.allclose(principal_frames(p), principal_frames(moved), atol=1e-9)  # position, scale, rotation
+
+
+def test_style_metrics_tell_styles_apart(pebbles):
+    """Compared to pebbles, the grass scene (tilted blades, green) is further than pebbles of another seed."""
+    other = make_scene("style", "pebbles", 3000, seed=5)
+    grass = make_scene("style", "grass", 3000, seed=0)
+    mo, mg = style_metrics(other, pebbles, SMALL), style_metrics(grass, pebbles, SMALL)
+    for k in ("tilt_w1_deg", "colour_sinkhorn", "style_patch_chamfer"):
+        assert mg[k] > mo[k], (k, mg[k], mo[k])
+
+
+# ---- colour-transfer baseline ----------------------------------------------------------------
+
+
+def test_colour_transfer_keeps_geometry_and_matches_the_style_colours():
+    from wast3d.baselines import ColourTransferConfig, colour_map, colour_transfer
+    from wast3d.sinkhorn import SinkhornConfig, exact_w2, sinkhorn
+
+    content, style = make_scene("content", "torus", 1500, seed=0), make_scene("style", "grass", 3000, seed=0)
+    out = colour_transfer(content, style, ColourTransferConfig())
+    for k in ("means", "log_scales", "quats", "opacity_logits", "sh_rest"):
+        assert torch.equal(getattr(out, k), getattr(content, k)), k
+    S = lambda a, b: float(sinkhorn(a.double(), b.double(), SinkhornConfig(blur=0.02), grad_y=False).value)  # noqa: E731
+    assert S(out.rgb, style.rgb) < 0.1 * S(content.rgb, style.rgb)
+    # the map's transport cost is the exact OT cost (POT's network simplex), up to the entropic blur
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(400, 3, generator=g, dtype=torch.float64)
+    y = torch.rand(400, 3, generator=g, dtype=torch.float64) * 0.5 + 0.3
+    T = colour_map(x, y, ColourTransferConfig(blur=0.01, extra_iters=50))
+    cost = float(((x - T) ** 2).sum(1).mean() / 2)
+    assert cost == pytest.approx(exact_w2(x, y), rel=0.05)
+
+
+def test_colour_transfer_rejects_empty_scenes():
+    from wast3d.baselines import ColourTransferConfig, colour_transfer
+
+    with pytest.raises(ValueError, match="empty scene"):
+        colour_transfer(GaussianScene.empty(), random_scene(10), ColourTransferConfig())
+
+
+# ---- rendering extras ------------------------------------------------------------------------
+
+
+def test_closeup_is_a_crop_of_the_zoomed_render():
+    from wast3d.render import closeup_camera, fit_orbit
+    from wast3d.rendering import rasterize
+
+    scene = random_scene(300, seed=2)
+    cam = fit_orbit(scene, 1, 40)[0]
+    cu = closeup_camera(cam, (25, 14), 2.0)
+    full = rasterize(scene, cam.scaled(2.0), background=(1.0, 1.0, 1.0))["rgb"]
+    crop = rasterize(scene, cu, background=(1.0, 1.0, 1.0))["rgb"]
+    x0, y0 = round(cam.cx * 2 - cu.cx), round(cam.cy * 2 - cu.cy)
+    assert (x0, y0) == (31, 9) and crop.shape == (40, 40, 3)
+    assert torch.allclose(crop, full[y0:y0 + 40, x0:x0 + 40], atol=1e-5)
+
+
+def test_fragment_pixel_is_on_the_foreground():
+    from wast3d.render import fragment_pixel
+
+    a = torch.zeros(30, 40)
+    a[5:10, 2:8] = 1  # two blobs: the centroid falls between them, on the background
+    a[20:25, 30:38] = 1
+    x, y = fragment_pixel(a)
+    assert a[y, x] == 1
+    assert fragment_pixel(torch.zeros(30, 40)) == (20, 15)
+
+
+def plane_scene(n=400, tilt_deg=0.0):
+    """Flat Gaussians on the plane z = x tan(tilt), normals along the plane's normal."""
+    g = torch.Generator().manual_seed(0)
+    t = math.radians(tilt_deg)
+    uv = torch.rand(n, 2, generator=g) * 2 - 1
+    means = torch.stack([uv[:, 0] * math.cos(t), uv[:, 1], uv[:, 0] * math.sin(t)], 1)
+    half = -t / 2  # rotate about y so the flat (z) axis follows the plane's normal
+    quats = torch.tensor([math.cos(half), 0.0, math.sin(half), 0.0]).expand(n, 4).clone()
+    return GaussianScene.from_activated(means, torch.tensor([0.08, 0.08, 0.005]).expand(n, 3).clone(), quats,
+                                        torch.full((n,), 0.99), torch.full((n, 3), 0.5))
+
+
+@pytest.mark.parametrize("mode", ["axis", "depth"])
+def test_normals_of_a_plane(mode):
+    from wast3d.render import RenderConfig, render_maps
+
+    scene = plane_scene(3000, tilt_deg=30.0)
+    eye = torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64)
+    cam = Camera(look_at(eye, torch.zeros(3, dtype=torch.float64), up=(0.0, 1.0, 0.0)), 60.0, 60.0, 32, 32, 64, 64)
+    m = render_maps(scene, cam, RenderConfig(normals=mode, size=64, frames=1, key_views=1))
+    R = cam.world_to_cam[:3, :3].float()
+    n_world = torch.tensor([-math.sin(math.radians(30)), 0.0, math.cos(math.radians(30))])
+    expect = R @ n_world
+    expect = -expect if expect[2] > 0 else expect  # facing the camera
+    inner = (m["alpha"] > 0.99)[4:-4, 4:-4]
+    got = m["normal"][4:-4, 4:-4][inner]
+    got = got[got.norm(dim=1) > 0.5]  # depth normals are 0 where a neighbour is background
+    assert len(got) > 500
+    cos = (got / got.norm(dim=1, keepdim=True) @ expect).median()
+    assert cos > 0.99, float(cos)
+
+
+def test_render_turntable_artifacts_and_sheet(tmp_path):
+    import imageio.v3 as iio
+
+    from wast3d.render import RenderConfig, comparison_sheet, read_frames, render_turntable
+
+    scene = make_scene("content", "torus", 800)
+    cfg = RenderConfig(frames=6, size=48, key_views=2, closeup_zoom=2)
+    info = render_turntable(scene, scene, tmp_path / "a", cfg)
+    assert info["key_frames"] == [0, 3]
+    fr = read_frames(tmp_path / "a")
+    assert fr.shape == (6, 48, 48, 4) and float(fr[..., 3].max()) == 1.0
+    gif = iio.imread(tmp_path / "a" / "turntable.gif", index=None)
+    assert gif.shape[0] == 6
+    for name in ("key_00_rgb", "key_01_normal", "closeup_rgb", "closeup_depth", "closeup_normal"):
+        assert iio.imread(tmp_path / "a" / f"{name}.png").shape[:2] == (48, 48)
+    json.loads((tmp_path / "a" / "render.json").read_text())
+    # the same reference -> the same cameras for another scene
+    info2 = render_turntable(make_scene("content", "sphere", 500), scene, tmp_path / "b", cfg)
+    assert info2["cameras"] == info["cameras"]
+    comparison_sheet([("a", tmp_path / "a"), ("b", tmp_path / "b")], tmp_path / "sheet.png")
+    sheet = iio.imread(tmp_path / "sheet.png")
+    assert sheet.shape[1] == 96 and sheet.shape[0] > 5 * 48
+    with pytest.raises(FileNotFoundError, match="no turntable frames"):
+        read_frames(tmp_path)
+
+
+# ---- evaluate stage and Table 1 ----------------------------------------------------------------
+
+
+def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
+    from wast3d.pipeline import run_evaluate, run_render
+    from wast3d.ply import write_ply
+
+    content, style = make_scene("content", "torus", 800), make_scene("style", "pebbles", 1500)
+    write_ply(tmp_path / "c.ply", content)
+    write_ply(tmp_path / "s.ply", style)
+    rp = {"frames": 3, "size": 48, "key_views": 1}
+    run_render(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "rc", rp, progress=False)
+    run_render(tmp_path / "s.ply", tmp_path / "s.ply", tmp_path / "rs", rp, progress=False)
+    small = {"patches": 8, "candidates": 16, "patch_size": 8, "rotations": 2, "colour_points": 128}
+    base = {"metrics": small, "crops": {"count": 4, "size": 16}}
+    run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
+                 tmp_path / "none.json", base)
+    ev = json.loads((tmp_path / "none.json").read_text())
+    assert ev["clip_similarity"] is None and ev["clip_status"].startswith("not computed: no clip.checkpoint")
+    assert ev["content_chamfer"] == 0 and ev["style_patch_chamfer"] > 0
+    clip = {"model": "wast3d-tiny-clip", "checkpoint": str(tiny_clip[1]), "model_config": str(tiny_clip[0])}
+    run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
+                 tmp_path / "clip.json", {**base, "clip": clip})
+    ev = json.loads((tmp_path / "clip.json").read_text())
+    assert ev["clip_status"] == "computed" and -100 <= ev["clip_similarity"] <= 100
+    with pytest.raises(ValueError, match="evaluate.metrics: unknown parameter.*patchez"):
+        run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc",
+                     tmp_path / "rs", tmp_path / "x.json", {"metrics": {"patchez": 3}})
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_table1_row_reads_eval_and_benchmarks(tmp_path):
+    from wast3d.tables import table1_row, write_table
+
+    r = tmp_path / "results"
+    (r / "eval/c__s").mkdir(parents=True)
+    (r / "benchmarks/rules").mkdir(parents=True)
+    (r / "stylize/c__s/e").mkdir(parents=True)
+    (r / "eval/c__s/e.json").write_text(json.dumps({"clip_similarity": None, "clip_status": "not computed: x",
+                                                    "content_chamfer": 1.5, "gaussians": 10}))
+    (r / "stylize/c__s/e/losses.json").write_text(json.dumps({"device": "cpu"}))
+    head = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+    for name, s, mem in (("register_c__s_p", 2.0, 100), ("select_c__s_p", 1.0, 50), ("sinkhorn_c__s_e", 10.0, 300),
+                         ("rescale_c__s_e", 0.5, 40)):
+        (r / f"benchmarks/rules/{name}.tsv").write_text(head + f"{s}\t0\t{mem}\t0\t0\t0\t0\t0\t0\t0\n")
+    row = table1_row(r, "c", "s", "e", "p", "ours")
+    assert row["clip_similarity_pct"] == "not computed" and row["content_chamfer"] == 1.5
+    assert row["time_s"] == pytest.approx(13.5) and row["peak_mem_mb"] == 300 and row["device"] == "cpu"
+    (r / "benchmarks/rules/rescale_c__s_e.tsv").unlink()
+    assert table1_row(r, "c", "s", "e", "p", "ours")["time_s"] is None  # never a partial sum
+    df = write_table([row], tmp_path / "t.csv", tmp_path / "t.md")
+    assert "not computed" in (tmp_path / "t.md").read_text() and len(df) == 1

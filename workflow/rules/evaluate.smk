@@ -1,0 +1,128 @@
+"""Stages 7-9 for Table 1: renders (turntable, key views, close-up, depth, normals), the colour-transfer
+baseline, the evaluation of each method (weights-free metrics, CLIP crop similarity), comparison
+sheets and Table 1. Renders of a pair use cameras fitted to its content, so that all methods show the
+same views and the same close-up fragment."""
+
+
+rule render_method:
+    input:
+        ply=method_ply,
+        reference=lambda w: content_points(w.content),
+    output:
+        directory(f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}"),
+    params:
+        exe=WAST3D,
+        cfg=stage_json(EVALUATION.get("render", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/render/{{content}}__{{style}}_{{method}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/render_{{content}}__{{style}}_{{method}}.tsv"
+    shell:
+        "{params.exe} render {input.ply} {input.reference} {output} --no-progress --params '{params.cfg}' 2> {log}"
+
+
+rule render_scene:
+    input:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+    output:
+        directory(f"{RESULTS}/render/scenes/{{scene}}"),
+    params:
+        exe=WAST3D,
+        cfg=stage_json(EVALUATION.get("render", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/render/scene_{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/render_scene_{{scene}}.tsv"
+    shell:
+        "{params.exe} render {input.ply} {input.ply} {output} --no-progress --params '{params.cfg}' 2> {log}"
+
+
+rule colour_transfer:
+    input:
+        content=lambda w: content_points(w.content),
+        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+    output:
+        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/colour_ot/final.ply",
+        json=f"{RESULTS}/stylize/{{content}}__{{style}}/colour_ot/final.json",
+    params:
+        exe=WAST3D,
+        cfg=stage_json(EVALUATION.get("colour_transfer", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/colour_transfer/{{content}}__{{style}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/colour_transfer_{{content}}__{{style}}.tsv"
+    shell:
+        "{params.exe} colour-transfer {input.content} {input.style} {output.ply} --params '{params.cfg}' 2> {log}"
+
+
+rule evaluate:
+    input:
+        result=method_ply,
+        content=lambda w: content_points(w.content),
+        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        result_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}",
+        style_render=f"{RESULTS}/render/scenes/{{style}}",
+        clip=clip_inputs(),
+    output:
+        f"{RESULTS}/eval/{{content}}__{{style}}/{{method}}.json",
+    params:
+        exe=WAST3D,
+        cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "crops", "clip") if k in EVALUATION}),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/evaluate/{{content}}__{{style}}_{{method}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
+    shell:
+        "{params.exe} evaluate {input.result} {input.content} {input.style} {input.result_render} "
+        "{input.style_render} {output} --params '{params.cfg}' 2> {log}"
+
+
+rule comparison_sheet:
+    input:
+        content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
+        style=f"{RESULTS}/render/scenes/{{style}}",
+        methods=lambda w: [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in TABLE1_METHODS if m != "input"],
+    output:
+        report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
+    params:
+        exe=WAST3D,
+        columns=lambda w, input: " ".join(
+            shlex.quote(f"{label}={path}") for label, path in
+            [("content", input.content), ("style", input.style)]
+            + [(TABLE1_METHODS[m], p) for m, p in zip([m for m in TABLE1_METHODS if m != "input"], input.methods)]),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/figures/{{content}}__{{style}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}.tsv"
+    shell:
+        "{params.exe} compare {output} {params.columns} 2> {log}"
+
+
+rule table1:
+    input:
+        [f"{RESULTS}/eval/{c}__{s}/{m}.json" for c, s in TABLE1_PAIRS for m in TABLE1_METHODS],
+    output:
+        csv=report(f"{RESULTS}/tables/table1.csv", caption="../report/table1.rst", category="Tables"),
+        md=f"{RESULTS}/tables/table1.md",
+    params:
+        exe=WAST3D,
+        results=lambda w, output: os.path.dirname(os.path.dirname(output.csv)),
+        rows=table1_rows(),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/tables/table1.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/table_table1.tsv"
+    shell:
+        "{params.exe} table1 {params.results} {output.csv} --md {output.md} --row {params.rows} > {log} 2>&1"
