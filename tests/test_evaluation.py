@@ -350,3 +350,22 @@ def test_table1_row_reads_eval_and_benchmarks(tmp_path):
     assert table1_row(r, "c", "s", "e", "p", "ours")["time_s"] is None  # never a partial sum
     df = write_table([row], tmp_path / "t.csv", tmp_path / "t.md")
     assert "not computed" in (tmp_path / "t.md").read_text() and len(df) == 1
+
+
+def test_metrics_on_degenerate_inputs_are_finite():
+    """Duplicated points (zero-radius patches), a collinear cloud (no unique normal), a scene smaller
+    than a patch, needle-like Gaussians: finite values, no NaN."""
+    g = torch.Generator().manual_seed(0)
+    n = 60
+    dup = GaussianScene.from_activated(torch.zeros(n, 3), torch.full((n, 3), 0.01), torch.randn(n, 4, generator=g),
+                                       torch.full((n,), 0.5), torch.rand(n, 3, generator=g))
+    t = torch.linspace(0, 1, n)[:, None]
+    line = GaussianScene.from_activated(t * torch.tensor([1.0, 2.0, 3.0]),
+                                        torch.tensor([1e-6, 0.05, 0.05]).expand(n, 3).clone(),
+                                        torch.randn(n, 4, generator=g), torch.full((n,), 0.5), torch.rand(n, 3, generator=g))
+    few = random_scene(5, seed=3)
+    for a, b in ((dup, line), (line, dup), (few, line), (dup, dup)):
+        m = weights_free_metrics(a, b.means, b, SMALL)
+        assert all(math.isfinite(v) for v in m.values()), m
+    with pytest.raises(ValueError, match="at least 2 Gaussians"):
+        style_metrics(random_scene(1), line, SMALL)
