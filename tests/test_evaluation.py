@@ -369,3 +369,14 @@ def test_metrics_on_degenerate_inputs_are_finite():
         assert all(math.isfinite(v) for v in m.values()), m
     with pytest.raises(ValueError, match="at least 2 Gaussians"):
         style_metrics(random_scene(1), line, SMALL)
+
+
+def test_evaluate_names_the_file_of_an_empty_result(tmp_path):
+    from wast3d.cli import main
+    from wast3d.ply import write_ply
+
+    write_ply(tmp_path / "empty.ply", GaussianScene.empty())
+    write_ply(tmp_path / "s.ply", random_scene(50))
+    rc = main(["evaluate", str(tmp_path / "empty.ply"), str(tmp_path / "s.ply"), str(tmp_path / "s.ply"),
+               str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
+    assert rc == 2 and not (tmp_path / "out.json").exists()

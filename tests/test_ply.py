@@ -141,3 +141,14 @@ def test_info_cli(tmp_path):
     r = subprocess.run([sys.executable, "-m", "wast3d", "info", str(tmp_path / "bad.ply"), "--json"],
                        capture_output=True, text=True)
     assert r.returncode == 1 and json.loads(r.stdout)["valid"] is False
+
+
+def test_empty_scene_round_trip(tmp_path):
+    """A stage can produce no Gaussians (e.g. everything filtered): the file is valid and keeps the SH degree."""
+    from wast3d.gaussians import GaussianScene
+    from wast3d.ply import read_ply, write_ply
+
+    for deg in (0, 3):
+        write_ply(tmp_path / f"e{deg}.ply", GaussianScene.empty(sh_degree=deg))
+        s = read_ply(tmp_path / f"e{deg}.ply")
+        assert len(s) == 0 and s.sh_degree == deg

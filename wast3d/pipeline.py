@@ -231,6 +231,9 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     kcfg = make_config(ClipConfig, params.get("clip"), "evaluate.clip")
     result, style = read_ply(result_ply), read_ply(style_ply)
     content = read_ply(content_ply)
+    for path, scene in ((result_ply, result), (style_ply, style), (content_ply, content)):
+        if len(scene) < 2:
+            raise ValueError(f"{path}: {len(scene)} Gaussian(s); the metrics need at least 2")
     out = weights_free_metrics(result, content.means, style, mcfg)
     out.update({"clip_similarity": None, "clip_status": "", "clip_model": kcfg.model})
     crops_a, boxes_a = random_crops(read_frames(result_render), ccfg)

@@ -46,7 +46,7 @@ def scene_to_array(scene: GaussianScene) -> np.ndarray:
     """Pack a scene into the [N, P] float32 matrix of the reference layout."""
     s = scene.detach().to(device="cpu", dtype=torch.float32)
     n = len(s)
-    rest = s.sh_rest.transpose(1, 2).reshape(n, -1)  # channel-major
+    rest = s.sh_rest.transpose(1, 2).reshape(n, 3 * s.sh_rest.shape[1])  # channel-major
     cols = [s.means, torch.zeros(n, 3), s.sh_dc, rest, s.opacity_logits[:, None], s.log_scales, s.quats]
     return torch.cat(cols, dim=1).numpy()
 
