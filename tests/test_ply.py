@@ -146,7 +146,6 @@ def test_info_cli(tmp_path):
 def test_empty_scene_round_trip(tmp_path):
     """A stage can produce no Gaussians (e.g. everything filtered): the file is valid and keeps the SH degree."""
     from wast3d.gaussians import GaussianScene
-    from wast3d.ply import read_ply, write_ply
 
     for deg in (0, 3):
         write_ply(tmp_path / f"e{deg}.ply", GaussianScene.empty(sh_degree=deg))
