@@ -61,6 +61,16 @@ def knn_mean_dist(points: torch.Tensor, k: int) -> torch.Tensor:
     return d.mean(dim=1)
 
 
+def local_normals(points: torch.Tensor, at: torch.Tensor, k: int) -> torch.Tensor:
+    """Least-variance direction (unit, sign arbitrary) of the ``k`` nearest ``points`` [M, 3] of each
+    query in ``at`` [B, 3]: the local surface normal by PCA. -> [B, 3]."""
+    _, idx = knn(at, points, k)
+    nb = points[idx]  # [B, k, 3]
+    c = nb - nb.mean(1, keepdim=True)
+    _, vecs = torch.linalg.eigh(c.transpose(1, 2) @ c)
+    return vecs[:, :, 0]
+
+
 def kabsch(H: torch.Tensor) -> torch.Tensor:
     """H: [B,3,3] = sum g u^T -> the proper rotation R maximizing tr(R H), i.e. minimizing |R g - u|^2.
 

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from .gaussians import GaussianScene, anisotropy, shortest_axis
-from .geometry import knn, knn_mean_dist
+from .geometry import knn, knn_mean_dist, local_normals
 
 
 @dataclass
@@ -123,18 +123,10 @@ def patch_match(a: torch.Tensor, b: torch.Tensor, rotations: int) -> tuple[torch
     return best, arg, rot
 
 
-def local_normals(points: torch.Tensor, k: int) -> torch.Tensor:
-    """Smallest principal axis of each point's ``k`` nearest neighbours: [N, 3] (sign arbitrary)."""
-    k = min(k, len(points))
-    nb = knn(points, points, k)[1]
-    p = points[nb]
-    c = p - p.mean(1, keepdim=True)
-    return torch.linalg.eigh(c.transpose(1, 2) @ c)[1][..., 0]
-
-
 def tilt_degrees(scene: GaussianScene, k: int) -> torch.Tensor:
     """Angle in degrees [0, 90] between each Gaussian's shortest axis and the local surface normal."""
-    n = local_normals(scene.means.double(), k)
+    m = scene.means.double()
+    n = local_normals(m, m, k)
     a = shortest_axis(scene.quats.double(), scene.scales.double())
     return torch.rad2deg(torch.arccos((n * a).sum(-1).abs().clamp(0, 1)))
 

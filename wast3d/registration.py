@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .gaussians import quat_to_rotmat
-from .geometry import frame_from_normal, kabsch, knn
+from .geometry import frame_from_normal, kabsch, knn, local_normals
 
 log = logging.getLogger(__name__)
 
@@ -107,14 +107,6 @@ def _segment_mean(v: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     s = v.new_zeros(n, *v.shape[1:]).index_add_(0, seg, v)
     c = v.new_zeros(n).index_add_(0, seg, torch.ones_like(seg, dtype=v.dtype)).clamp_min(1)
     return s / c.view(-1, *([1] * (v.ndim - 1)))
-
-
-def _local_normals(style: torch.Tensor, at: torch.Tensor, k: int = 32) -> torch.Tensor:
-    _, idx = knn(at, style, k)
-    nb = style[idx]  # [B, k, 3]
-    c = nb - nb.mean(1, keepdim=True)
-    _, vecs = torch.linalg.eigh(c.transpose(1, 2) @ c)
-    return vecs[:, :, 0]  # least-variance direction
 
 
 def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, p, s_lo, s_hi, iters: int):
@@ -192,7 +184,7 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     lp = style[inner[torch.randint(len(inner), (K, cfg.landings), generator=g)]]
     lp[:, 0] = sc
     p0 = lp[:, land].reshape(B, 3)
-    n_style = _local_normals(style, p0)
+    n_style = local_normals(style, p0, 32)
     # cluster normals (least-variance axis of each cluster)
     cov = content.new_zeros(K, 3, 3).index_add_(0, labels, cent[:, :, None] * cent[:, None, :])
     _, vecs = torch.linalg.eigh(cov + 1e-12 * torch.eye(3, dtype=cov.dtype))
