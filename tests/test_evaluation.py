@@ -380,3 +380,13 @@ def test_evaluate_names_the_file_of_an_empty_result(tmp_path):
     rc = main(["evaluate", str(tmp_path / "empty.ply"), str(tmp_path / "s.ply"), str(tmp_path / "s.ply"),
                str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
     assert rc == 2 and not (tmp_path / "out.json").exists()
+
+
+def test_table_row_specs():
+    from wast3d.tables import parse_spec
+
+    assert parse_spec("lego__grass/default", ("EXPERIMENT",)) == ["lego", "grass", "default"]
+    assert parse_spec("a__b/m/-/xyz / RGB", ("M", "P", "L")) == ["a", "b", "m", "-", "xyz / RGB"]
+    for bad in ("lego-grass/default", "a__b"):
+        with pytest.raises(ValueError, match="is not CONTENT__STYLE/EXPERIMENT"):
+            parse_spec(bad, ("EXPERIMENT",))

@@ -247,48 +247,33 @@ def cmd_compare(sub):
     return run
 
 
-@command("summarize", "one table row per (content, style, experiment) from the stage reports")
-def cmd_summarize(sub):
-    sub.add_argument("results", type=Path)
-    sub.add_argument("out_csv", type=Path)
-    sub.add_argument("--md", type=Path)
-    sub.add_argument("--run", nargs="+", required=True, help="CONTENT__STYLE/EXPERIMENT ...")
+def table_command(name: str, help_: str, flag: str, row_help: str, row_fn: str, hidden: tuple[str, ...] = ()):
+    """A command writing a CSV (and Markdown) table with one ``tables.<row_fn>(results, spec)`` row per
+    spec given after ``flag``; prints it without the ``hidden`` columns."""
 
-    def run(a):
-        from .tables import run_row, write_table
+    @command(name, help_)
+    def cmd(sub):
+        sub.add_argument("results", type=Path)
+        sub.add_argument("out_csv", type=Path)
+        sub.add_argument("--md", type=Path)
+        sub.add_argument(flag, dest="specs", nargs="+", required=True, help=row_help)
 
-        rows = []
-        for r in a.run:
-            pair, exp = r.split("/")
-            c, s = pair.split("__")
-            rows.append(run_row(a.results, c, s, exp))
-        print(write_table(rows, a.out_csv, a.md).to_string(index=False))
+        def run(a):
+            from . import tables
 
-    return run
+            rows = [getattr(tables, row_fn)(a.results, spec) for spec in a.specs]
+            print(tables.write_table(rows, a.out_csv, a.md).drop(columns=list(hidden)).to_string(index=False))
+
+        return run
+
+    return cmd
 
 
-@command("table1", "the paper's Table 1: CLIP similarity, weights-free metrics, time, memory, device per method")
-def cmd_table1(sub):
-    sub.add_argument("results", type=Path)
-    sub.add_argument("out_csv", type=Path)
-    sub.add_argument("--md", type=Path)
-    sub.add_argument("--row", nargs="+", required=True,
-                     help="CONTENT__STYLE/METHOD/PARTITION/LABEL ... (PARTITION '-' for baselines and the input)")
-
-    def run(a):
-        from .tables import table1_row, write_table
-
-        rows = []
-        for r in a.row:
-            parts = r.split("/", 3)
-            if len(parts) != 4 or "__" not in parts[0]:
-                raise ValueError(f"table1: row '{r}' is not CONTENT__STYLE/METHOD/PARTITION/LABEL")
-            pair, method, part, label = parts
-            c, s = pair.split("__", 1)
-            rows.append(table1_row(a.results, c, s, method, None if part == "-" else part, label))
-        print(write_table(rows, a.out_csv, a.md).drop(columns=["clip_status"]).to_string(index=False))
-
-    return run
+table_command("summarize", "one table row per (content, style, experiment) from the stage reports", "--run",
+              "CONTENT__STYLE/EXPERIMENT ...", "summary_spec_row")
+table_command("table1", "the paper's Table 1: CLIP similarity, weights-free metrics, time, memory, device per method",
+              "--row", "CONTENT__STYLE/METHOD/PARTITION/LABEL ... (PARTITION '-' for baselines and the input)",
+              "table1_spec_row", hidden=("clip_status",))
 
 
 @command("build-ext", "compile the native CPU kernels ahead of time")

@@ -101,3 +101,25 @@ def table1_row(results: Path, content: str, style: str, method: str, partition: 
            "peak_mem_mb": max(x["max_rss_mb"] for x in benches) if benches and all(benches) else None,
            "device": device, "clip_status": ev.get("clip_status")}
     return row
+
+
+# ---- row specifications (the ``--run`` / ``--row`` arguments of the table commands) ------------
+
+
+def parse_spec(spec: str, fields: tuple[str, ...]) -> list[str]:
+    """``CONTENT__STYLE/F1/.../Fn`` -> ``[content, style, f1, ..., fn]`` (the last field may hold '/')."""
+    parts = spec.split("/", len(fields))
+    if len(parts) != len(fields) + 1 or "__" not in parts[0]:
+        raise ValueError(f"table row '{spec}' is not CONTENT__STYLE/{'/'.join(fields)}")
+    return [*parts[0].split("__", 1), *parts[1:]]
+
+
+def summary_spec_row(results: Path, spec: str) -> dict:
+    """:func:`run_row` of ``CONTENT__STYLE/EXPERIMENT``."""
+    return run_row(results, *parse_spec(spec, ("EXPERIMENT",)))
+
+
+def table1_spec_row(results: Path, spec: str) -> dict:
+    """:func:`table1_row` of ``CONTENT__STYLE/METHOD/PARTITION/LABEL`` (PARTITION '-': no partition)."""
+    c, s, method, part, label = parse_spec(spec, ("METHOD", "PARTITION", "LABEL"))
+    return table1_row(results, c, s, method, None if part == "-" else part, label)
