@@ -149,16 +149,14 @@ def style_metrics(result: GaussianScene, style: GaussianScene, cfg: MetricsConfi
     if len(result) < 2 or len(style) < 2:
         raise ValueError(f"metrics: need at least 2 Gaussians on each side (result {len(result)}, style {len(style)})")
     scfg = SinkhornConfig(blur=cfg.blur, scaling=0.7, extra_iters=20)
-    g = torch.Generator().manual_seed(cfg.seed)
-    pa = principal_frames(sample_patches(result.means.double(), cfg.patches, cfg.patch_size, g, cfg.patch_stride))
-    g = torch.Generator().manual_seed(cfg.seed)
-    pb = principal_frames(sample_patches(style.means.double(), cfg.candidates, cfg.patch_size, g, cfg.patch_stride))
+    # each side draws from a fresh generator with the same seed: identical clouds -> identical samples
+    rng = lambda: torch.Generator().manual_seed(cfg.seed)  # noqa: E731
+    pa = principal_frames(sample_patches(result.means.double(), cfg.patches, cfg.patch_size, rng(), cfg.patch_stride))
+    pb = principal_frames(sample_patches(style.means.double(), cfg.candidates, cfg.patch_size, rng(), cfg.patch_stride))
     best, arg, rot = patch_match(pa, pb, cfg.rotations)
     sk = [float(sinkhorn(rot[i], pb[arg[i]], scfg, grad_y=False).value) for i in range(len(pa))]
-    g = torch.Generator().manual_seed(cfg.seed)
-    ia = _subsample(len(result), cfg.colour_points, g)
-    g = torch.Generator().manual_seed(cfg.seed)
-    ib = _subsample(len(style), cfg.colour_points, g)
+    ia = _subsample(len(result), cfg.colour_points, rng())
+    ib = _subsample(len(style), cfg.colour_points, rng())
     colour = float(sinkhorn(result.rgb[ia].double(), style.rgb[ib].double(), scfg, grad_y=False).value)
     tr, ts = tilt_degrees(result, cfg.normal_k), tilt_degrees(style, cfg.normal_k)
     ar, as_ = anisotropy(result.scales.double()).log10(), anisotropy(style.scales.double()).log10()

@@ -209,7 +209,7 @@ def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, param
     out = colour_transfer(content, style, cfg)
     secs = time.perf_counter() - t
     write_ply(out_ply, out)
-    write_json(Path(out_ply).with_suffix(".json"), {"method": "colour_ot", "seconds": secs, "device": "cpu",
+    write_json(Path(out_ply).with_suffix(".json"), {"method": "colour_ot", "seconds": secs, "device": str(out.means.device),
                                                     "gaussians": len(out), "config": dataclasses.asdict(cfg)})
 
 
@@ -222,7 +222,6 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     from .metrics import MetricsConfig, weights_free_metrics
     from .render import read_frames
 
-    params = dict(params)
     unknown = sorted(set(params) - {"metrics", "crops", "clip"})
     if unknown:
         raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: clip, crops, metrics)")
@@ -236,8 +235,8 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
             raise ValueError(f"{path}: {len(scene)} Gaussian(s); the metrics need at least 2")
     out = weights_free_metrics(result, content.means, style, mcfg)
     out.update({"clip_similarity": None, "clip_status": "", "clip_model": kcfg.model})
-    crops_a, boxes_a = random_crops(read_frames(result_render), ccfg)
-    crops_b, boxes_b = random_crops(read_frames(style_render), ccfg)
+    crops_a, _ = random_crops(read_frames(result_render), ccfg)
+    crops_b, _ = random_crops(read_frames(style_render), ccfg)
     out["crops"] = {"result": len(crops_a), "style": len(crops_b), "size": ccfg.size, "seed": ccfg.seed,
                     "min_alpha": ccfg.min_alpha}
     try:

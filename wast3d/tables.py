@@ -87,12 +87,9 @@ def table1_row(results: Path, content: str, style: str, method: str, partition: 
     """One row of Table 1 from ``results/eval/{content}__{style}/{method}.json`` and benchmark files."""
     ev = _read(Path(results) / "eval" / f"{content}__{style}" / f"{method}.json")
     benches = [_bench(p) for p in method_benchmarks(results, content, style, method, partition)]
-    if method == "colour_ot":
-        device = _read(Path(results) / "stylize" / f"{content}__{style}" / "colour_ot" / "final.json").get("device")
-    elif partition is not None:
-        device = _read(Path(results) / "stylize" / f"{content}__{style}" / method / "losses.json").get("device")
-    else:
-        device = None
+    # where the method's own stage recorded its device (the unstylized input has no such stage)
+    report = "final.json" if method == "colour_ot" else ("losses.json" if partition is not None else None)
+    device = _read(Path(results) / "stylize" / f"{content}__{style}" / method / report).get("device") if report else None
     clip = ev.get("clip_similarity")
     row = {"content": content, "style": style, "method": label, "run": method,
            "clip_similarity_pct": clip if clip is not None else "not computed",

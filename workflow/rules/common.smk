@@ -52,10 +52,16 @@ EXPERIMENTS, RUN = expand_experiments()
 for _e, _x in EXPERIMENTS.items():
     if _x["partition"] not in PARTITIONS:
         raise ValueError(f"config: experiments.{_e}.partition '{_x['partition']}' is not defined under 'partitions'")
-for _c, _s in PAIRS:
-    for _n in (_c, _s):
-        if _n not in SCENES:
-            raise ValueError(f"config: pairs: scene '{_n}' is not defined under 'scenes'")
+
+
+def check_pairs(pairs, key):
+    for pair in pairs:
+        for name in pair:
+            if name not in SCENES:
+                raise ValueError(f"config: {key}: scene '{name}' is not defined under 'scenes'")
+
+
+check_pairs(PAIRS, "pairs")
 for _r in RUN:
     if _r not in EXPERIMENTS:
         raise ValueError(f"config: run: experiment '{_r}' is not defined under 'experiments'")
@@ -75,10 +81,7 @@ for _e in EXPERIMENTS:
 for _m in TABLE1_METHODS:
     if _m not in EXPERIMENTS and _m not in BASELINES:
         raise ValueError(f"config: table1.methods: '{_m}' is neither an experiment nor one of {', '.join(BASELINES)}")
-for _c, _s in TABLE1_PAIRS:
-    for _n in (_c, _s):
-        if _n not in SCENES:
-            raise ValueError(f"config: table1.pairs: scene '{_n}' is not defined under 'scenes'")
+check_pairs(TABLE1_PAIRS, "table1.pairs")
 METHODS = list(EXPERIMENTS) + list(BASELINES)
 
 
