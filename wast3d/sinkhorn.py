@@ -51,9 +51,14 @@ class SinkhornConfig:
     debias: bool = True
     extra_iters: int = 0
     warm_iters: int = 3
+    tol: float = 0.0  # > 0: iterate at the final eps until max |change of a potential| <= tol * eps
+    max_iters: int = 200  # cap on those convergence iterations (per solve)
     backend: str = "auto"  # "native" | "torch" | "geomloss" (reference) | "auto"
 
     def __post_init__(self):
+        if not (self.tol >= 0 and math.isfinite(self.tol)) or self.max_iters < 0 or self.warm_iters < 0 \
+                or self.extra_iters < 0:
+            raise ValueError("sinkhorn: need tol >= 0 (finite), max_iters, warm_iters, extra_iters >= 0")
         if not (self.blur > 0 and math.isfinite(self.blur)):
             raise ValueError(f"sinkhorn.blur must be a positive finite number, got {self.blur}")
         if not 0 < self.scaling < 1:
@@ -72,6 +77,7 @@ class Potentials:
     g_bb: torch.Tensor
     eps: float
     iterations: int = 0
+    converged: bool = False  # every potential met the tolerance: f_aa may then be reused (x_fixed)
 
 
 @dataclass
@@ -205,7 +211,10 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
         f_ba, g_ab, f_aa, g_bb = init.f_ba, init.g_ab, init.f_aa, init.g_bb
         schedule = [eps_final] * cfg.warm_iters
         n_sched = 0
-        reuse_aa = x_fixed and not grad_x
+        # f_aa depends on x alone; reusing it is exact only once it has converged (a cold eps-scaling
+        # solve leaves it off by as much as the divergence itself at large blur, and a stale f_aa
+        # biases every later value: the reported loss went negative)
+        reuse_aa = x_fixed and not grad_x and init.converged
     else:
         d = diameter_of(x, y) if diameter is None else diameter
         schedule = epsilon_schedule(d, cfg.blur, cfg.scaling)
@@ -222,6 +231,20 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
     for k, eps in enumerate(schedule):
         f_ba, g_ab, f_aa, g_bb = update(eps, f_ba, g_ab, f_aa, g_bb, avg=k < n_sched)
         iters += 1
+    converged = False
+    if cfg.tol > 0:
+        # convergence test at the final eps: the largest change of any potential in one iteration,
+        # against tol * eps (floored at a few ulps of the potentials' magnitude for float32)
+        floor = 8 * torch.finfo(x.dtype).eps
+        for _ in range(cfg.max_iters):
+            new = update(eps_final, f_ba, g_ab, f_aa, g_bb, avg=False)
+            change = max(float((u - v).abs().max()) for u, v in zip(new, (f_ba, g_ab, f_aa, g_bb)))
+            scale = max(float(t.abs().max()) for t in new)
+            f_ba, g_ab, f_aa, g_bb = new
+            iters += 1
+            if change <= max(cfg.tol * eps_final, floor * scale):
+                converged = True
+                break
     # last extrapolation (full update), with barycentres where a gradient is wanted
     eps = eps_final
 
@@ -242,10 +265,11 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
         gx = a[:, None] * (x - T_ab) if grad_x else None
         gy = b[:, None] * (y - T_ba) if grad_y else None
     iters += 1
-    pot = Potentials(f_ba_new, g_ab_new, f_aa_new, g_bb_new, eps_final, iters)
+    pot = Potentials(f_ba_new, g_ab_new, f_aa_new, g_bb_new, eps_final, iters, converged)
     if not torch.isfinite(value):
         raise FloatingPointError(f"sinkhorn: non-finite divergence (N={N}, M={M}, eps={eps_final:g}, backend={backend})")
-    return Result(value, gx, gy, pot, {"iterations": iters, "backend": backend})
+    return Result(value, gx, gy, pot, {"iterations": iters, "backend": backend, "converged": converged,
+                                       "reused_f_aa": reuse_aa})
 
 
 def _sinkhorn_geomloss(x, y, cfg, a, b, diameter, grad_x, grad_y) -> Result:
