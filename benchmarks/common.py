@@ -62,3 +62,87 @@ def cluster_pair(n: int, m: int | None = None, seed: int = 0, dtype=torch.float3
     xf = torch.cat([xn, 0.5 * luminance(xr)[:, None]], 1).to(dtype)
     yf = torch.cat([yn, 0.5 * luminance(yr)[:, None]], 1).to(dtype)
     return xf.contiguous(), yf.contiguous()
+
+
+# ---- whole pairs (metrics validation, style trade-off) ---------------------------------------
+
+STYLE_KEYS = ("relief_w1", "texture_swd", "style_patch_chamfer", "style_patch_sinkhorn", "tilt_w1_deg", "aniso_w1",
+              "colour_sinkhorn")
+
+
+def demo_scene(name: str, seed: int = 0):
+    """A demo scene by name: the procedural content meshes and styles at the demo's sizes, or 'lego'
+    (the pretrained surface samples of the workflow, results/scenes/lego/surface.ply)."""
+    from wast3d.ply import read_ply
+    from wast3d.procedural import CONTENTS, make_scene
+
+    if name == "lego":
+        p = ROOT / "results" / "scenes" / "lego" / "surface.ply"
+        if not p.exists():
+            raise FileNotFoundError(f"{p}: run the workflow with config/lego.yaml first (pretraining + surface)")
+        return read_ply(p)
+    return make_scene("content", name, 20000, seed) if name in CONTENTS else make_scene("style", name, 30000, seed)
+
+
+class PairRunner:
+    """Stages 3-6 on one (content, style) pair with the library's functions, caching k-means and
+    registration (they do not depend on the stylization settings): ``run(k, stylize, bound)`` ->
+    (final scene, seconds of selection + stylization + rescale)."""
+
+    def __init__(self, content, style, target_cluster_size: int = 800, reg_scale: float = 0.0):
+        from wast3d.clustering import ClusterConfig, kmeans
+        from wast3d.registration import RegistrationConfig, register
+
+        self.content, self.style = content, style
+        labels, _, _ = kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=target_cluster_size))
+        self.labels = torch.from_numpy(labels).long()
+        t = time.perf_counter()
+        self.reg = register(content.means, self.labels, style.means, RegistrationConfig(scale=reg_scale))
+        self.reg_seconds = time.perf_counter() - t
+        self.mapped = self.reg.apply(content.means.double(), self.labels)
+
+    def run(self, k: int, stylize_cfg, bound: float = 2.0):
+        from wast3d.rescale import readjust_scales
+        from wast3d.selection import select
+        from wast3d.stylize import stylize
+
+        t = time.perf_counter()
+        off, idx = select(self.mapped, self.labels, self.style.means.double(), k)
+        out, labs, curves, secs, before = stylize(self.content, self.labels, self.style, self.reg, off, idx,
+                                                  stylize_cfg, progress=False)
+        final, _ = readjust_scales(out, before, labs, 8, bound)
+        return final, time.perf_counter() - t, curves
+
+
+def render_frames(scene, reference, folder: Path, frames: int = 24, size: int = 256):
+    """Turntable frames [V, H, W, 4] of ``scene`` with cameras fitted to ``reference`` (written under
+    ``folder`` as the workflow's render stage writes them, then read back: the same quantization)."""
+    from wast3d.render import RenderConfig, read_frames, render_turntable
+
+    if not (Path(folder) / "render.json").exists():
+        render_turntable(scene, reference, folder, RenderConfig(frames=frames, size=size))
+    return read_frames(folder)
+
+
+def style_scores(result, result_frames, style, style_frames, seed: int, fast: bool = False) -> dict:
+    """Every style metric of a result at one metric seed (patches, crops and directions all drawn
+    from it). ``fast`` leaves out the slow patch-matching metrics."""
+    from wast3d.clip_eval import CropConfig, random_crops
+    from wast3d.image_metrics import TextureConfig, texture_swd
+    from wast3d.metrics import MetricsConfig, relief_w1, style_metrics
+
+    m = MetricsConfig(seed=seed)
+    if fast:  # no patch matching (seconds per call), no colour Sinkhorn
+        from wast3d.gaussians import anisotropy
+        from wast3d.metrics import tilt_degrees, wasserstein_1d
+
+        out = {"relief_w1": relief_w1(result.means, style.means, m),
+               "tilt_w1_deg": wasserstein_1d(tilt_degrees(result, m.normal_k), tilt_degrees(style, m.normal_k)),
+               "aniso_w1": wasserstein_1d(anisotropy(result.scales.double()).log10(),
+                                          anisotropy(style.scales.double()).log10())}
+    else:
+        out = style_metrics(result, style, m)
+    ca, _ = random_crops(result_frames, CropConfig(seed=seed))
+    cb, _ = random_crops(style_frames, CropConfig(seed=seed))
+    out["texture_swd"] = texture_swd(ca, cb, TextureConfig(seed=seed))
+    return out

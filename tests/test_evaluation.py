@@ -314,18 +314,19 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
     small = {"patches": 8, "candidates": 16, "patch_size": 8, "rotations": 2, "colour_points": 128}
     base = {"metrics": small, "crops": {"count": 4, "size": 16}}
     run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "none.json", base)
+                 tmp_path / "rc", tmp_path / "none.json", base)
     ev = json.loads((tmp_path / "none.json").read_text())
     assert ev["clip_similarity"] is None and ev["clip_status"].startswith("not computed: no clip.checkpoint")
     assert ev["content_chamfer"] == 0 and ev["style_patch_chamfer"] > 0
+    assert ev["coverage"] == 1.0 and ev["texture_swd"] > 0 and ev["relief_w1"] > 0
     clip = {"model": "wast3d-tiny-clip", "checkpoint": str(tiny_clip[1]), "model_config": str(tiny_clip[0])}
     run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "clip.json", {**base, "clip": clip})
+                 tmp_path / "rc", tmp_path / "clip.json", {**base, "clip": clip})
     ev = json.loads((tmp_path / "clip.json").read_text())
     assert ev["clip_status"] == "computed" and -100 <= ev["clip_similarity"] <= 100
     with pytest.raises(ValueError, match="evaluate.metrics: unknown parameter.*patchez"):
         run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc",
-                     tmp_path / "rs", tmp_path / "x.json", {"metrics": {"patchez": 3}})
+                     tmp_path / "rs", tmp_path / "rc", tmp_path / "x.json", {"metrics": {"patchez": 3}})
     assert not (tmp_path / "x.json").exists()
 
 
@@ -378,7 +379,7 @@ def test_evaluate_names_the_file_of_an_empty_result(tmp_path):
     write_ply(tmp_path / "empty.ply", GaussianScene.empty())
     write_ply(tmp_path / "s.ply", random_scene(50))
     rc = main(["evaluate", str(tmp_path / "empty.ply"), str(tmp_path / "s.ply"), str(tmp_path / "s.ply"),
-               str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
+               str(tmp_path), str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
     assert rc == 2 and not (tmp_path / "out.json").exists()
 
 
@@ -390,3 +391,48 @@ def test_table_row_specs():
     for bad in ("lego-grass/default", "a__b"):
         with pytest.raises(ValueError, match="is not CONTENT__STYLE/EXPERIMENT"):
             parse_spec(bad, ("EXPERIMENT",))
+
+
+# ---- relief, texture and coverage (issue #12) ---------------------------------------------------
+
+
+def test_relief_w1_zero_for_identical_and_orders_floor_below_a_flat_sheet():
+    from wast3d.metrics import MetricsConfig, relief_w1
+
+    cfg = MetricsConfig(relief_centres=256)
+    a = make_scene("style", "pebbles", 4000, seed=0).means
+    b = make_scene("style", "pebbles", 4000, seed=1).means
+    g = torch.Generator().manual_seed(0)
+    flat = torch.cat([torch.rand(4000, 2, generator=g) * 2 - 1, torch.zeros(4000, 1)], 1)
+    assert relief_w1(a, a, cfg) == 0
+    floor, negative = relief_w1(b, a, cfg), relief_w1(flat, a, cfg)
+    assert 0 < 5 * floor < negative, (floor, negative)
+
+
+def test_texture_swd_zero_for_identical_and_sees_a_flat_image():
+    from wast3d.image_metrics import TextureConfig, texture_swd
+
+    g = torch.Generator().manual_seed(0)
+    rough = torch.rand(16, 32, 32, 3, generator=g)
+    rough2 = torch.rand(16, 32, 32, 3, generator=g)
+    flat = torch.full((16, 32, 32, 3), 0.5) + 0.01 * torch.rand(16, 32, 32, 3, generator=g)
+    cfg = TextureConfig(per_crop=32, directions=32)
+    assert texture_swd(rough, rough, cfg) == 0
+    assert 5 * texture_swd(rough2, rough, cfg) < texture_swd(flat, rough, cfg)
+    with pytest.raises(ValueError, match="need crops"):
+        texture_swd(rough[:0], rough, cfg)
+
+
+def test_coverage_counts_holes_where_the_content_is():
+    from wast3d.image_metrics import coverage
+
+    ref = torch.zeros(2, 10, 10)
+    ref[:, 2:8, 2:8] = 1.0
+    assert coverage(ref, ref) == 1.0
+    holed = ref.clone()
+    holed[:, 2:5, 2:8] = 0.0  # half of the foreground
+    assert coverage(holed, ref) == pytest.approx(0.5)
+    assert coverage(torch.ones(2, 10, 10), ref) == 1.0  # extra foreground is no hole
+    assert coverage(ref, torch.zeros(2, 10, 10)) == 1.0
+    with pytest.raises(ValueError, match="differ in shape"):
+        coverage(ref[:1], ref)

@@ -225,7 +225,8 @@ stage_command("render", "stage 7: turntable (PNG frames + GIF), key views and cl
 stage_command("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
               ("content", "style", "out_ply"), "run_colour_transfer")
 stage_command("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result",
-              ("result", "content", "style", "result_render", "style_render", "out_json"), "run_evaluate")
+              ("result", "content", "style", "result_render", "style_render", "content_render", "out_json"),
+              "run_evaluate")
 
 
 @command("compare", "side-by-side comparison sheet of render folders (content, style, ours, baselines)")

@@ -23,6 +23,13 @@ Style fidelity (result vs style scene; neither needs the two to share a coordina
     (smallest principal axis of its ``normal_k`` nearest means). Relief, pebbles standing up, blades of
     grass: all show as tilt.
     ``aniso_w1``: W1 between the distributions of log10(max scale / min scale).
+    ``relief_w1``: local shape at the scale of the style's elements. Around ``relief_centres`` random
+    means, the k nearest means for each k in ``relief_scales`` (16, 64, 256: from a fraction of an
+    element to a few elements, counted in Gaussians so that no shared length unit is needed), their
+    covariance eigenvalues l1 >= l2 >= l3 and two descriptors: the relative height above the fitted
+    plane ``sqrt(l3 / (l1 + l2))`` (relief: domes, blades, strands, boulders) and the in-plane
+    isotropy ``sqrt(l2 / l1)`` (round patches vs strands and blades). Score: the mean over scales and
+    descriptors of the 1-D W1 between result and style distributions.
     ``colour_sinkhorn``: S_eps (blur 0.05) between RGB colours of the result and the style
     (``colour_points`` random Gaussians of each).
 
@@ -52,9 +59,14 @@ class MetricsConfig:
     normal_k: int = 16
     colour_points: int = 4096
     blur: float = 0.05
+    relief_scales: tuple = (16, 64, 256)
+    relief_centres: int = 2048
     seed: int = 0
 
     def __post_init__(self):
+        self.relief_scales = tuple(int(k) for k in self.relief_scales)
+        if not self.relief_scales or min(self.relief_scales) < 4 or self.relief_centres < 1:
+            raise ValueError("metrics: need relief_scales (each >= 4) and relief_centres >= 1")
         if min(self.patches, self.candidates, self.rotations, self.colour_points) < 1 or self.patch_size < 4 or self.patch_stride < 1 \
                 or self.normal_k < 3:
             raise ValueError("metrics: need patches, candidates, rotations, colour_points >= 1, patch_size >= 4, normal_k >= 3")
@@ -131,6 +143,33 @@ def tilt_degrees(scene: GaussianScene, k: int) -> torch.Tensor:
     return torch.rad2deg(torch.arccos((n * a).sum(-1).abs().clamp(0, 1)))
 
 
+def shape_descriptors(points: torch.Tensor, centres: torch.Tensor, ks: tuple) -> torch.Tensor:
+    """Local shape around points[centres]: points [N, 3], centres [C] -> [C, len(ks), 2] holding, per
+    neighbourhood of the k nearest points, ``sqrt(l3 / (l1 + l2))`` and ``sqrt(l2 / l1)`` of its
+    covariance eigenvalues l1 >= l2 >= l3 (k capped at N)."""
+    p = points.double()
+    kmax = min(max(ks), len(p))
+    _, nb = knn(p[centres], p, kmax)
+    out = []
+    for k in ks:
+        q = p[nb[:, :min(k, kmax)]]
+        c = q - q.mean(1, keepdim=True)
+        lam = torch.linalg.eigvalsh(c.transpose(1, 2) @ c / q.shape[1]).clamp_min(0)  # ascending
+        l3, l2, l1 = lam[:, 0], lam[:, 1], lam[:, 2]
+        height = (l3 / (l1 + l2).clamp_min(1e-30)).sqrt()
+        iso = (l2 / l1.clamp_min(1e-30)).sqrt()
+        out.append(torch.stack([height, iso], -1))
+    return torch.stack(out, 1)
+
+
+def relief_w1(result: torch.Tensor, style: torch.Tensor, cfg: "MetricsConfig") -> float:
+    """``relief_w1`` of the module docstring; result [N, 3], style [M, 3] means."""
+    rng = lambda: torch.Generator().manual_seed(cfg.seed)  # noqa: E731
+    da = shape_descriptors(result, _subsample(len(result), cfg.relief_centres, rng()), cfg.relief_scales)
+    db = shape_descriptors(style, _subsample(len(style), cfg.relief_centres, rng()), cfg.relief_scales)
+    return float(np.mean([wasserstein_1d(da[:, i, j], db[:, i, j]) for i in range(da.shape[1]) for j in range(2)]))
+
+
 def wasserstein_1d(u: torch.Tensor, v: torch.Tensor) -> float:
     """Exact W1 between two 1-D empirical distributions."""
     from scipy.stats import wasserstein_distance
@@ -165,6 +204,7 @@ def style_metrics(result: GaussianScene, style: GaussianScene, cfg: MetricsConfi
         "style_patch_sinkhorn": float(np.mean(sk)),
         "tilt_w1_deg": wasserstein_1d(tr, ts),
         "aniso_w1": wasserstein_1d(ar, as_),
+        "relief_w1": relief_w1(result.means, style.means, cfg),
         "colour_sinkhorn": colour,
         "tilt_median_deg": float(tr.median()), "style_tilt_median_deg": float(ts.median()),
         "aniso_median_log10": float(ar.median()), "style_aniso_median_log10": float(as_.median()),

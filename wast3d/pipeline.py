@@ -214,18 +214,23 @@ def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, param
 
 
 def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_render: Path, style_render: Path,
-                 out_json: Path, params: dict) -> None:
-    """Weights-free metrics and CLIP crop similarity of one result; ``params``: ``metrics``, ``crops``
-    and ``clip`` blocks (:class:`~wast3d.metrics.MetricsConfig`, :class:`~wast3d.clip_eval.CropConfig`,
-    :class:`~wast3d.clip_eval.ClipConfig`)."""
+                 content_render: Path, out_json: Path, params: dict) -> None:
+    """Weights-free metrics, texture SWD, coverage and CLIP crop similarity of one result; ``params``:
+    ``metrics``, ``texture``, ``crops`` and ``clip`` blocks (:class:`~wast3d.metrics.MetricsConfig`,
+    :class:`~wast3d.image_metrics.TextureConfig`, :class:`~wast3d.clip_eval.CropConfig`,
+    :class:`~wast3d.clip_eval.ClipConfig`). ``content_render``: the unstylized content's render with
+    the same cameras (coverage)."""
     from .clip_eval import ClipConfig, ClipUnavailable, CropConfig, clip_similarity, load_clip, random_crops
+    from .image_metrics import TextureConfig, coverage, texture_swd
     from .metrics import MetricsConfig, weights_free_metrics
     from .render import read_frames
 
-    unknown = sorted(set(params) - {"metrics", "crops", "clip"})
+    blocks = ("clip", "crops", "metrics", "texture")
+    unknown = sorted(set(params) - set(blocks))
     if unknown:
-        raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: clip, crops, metrics)")
+        raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(blocks)})")
     mcfg = make_config(MetricsConfig, params.get("metrics"), "evaluate.metrics")
+    tcfg = make_config(TextureConfig, params.get("texture"), "evaluate.texture")
     ccfg = make_config(CropConfig, params.get("crops"), "evaluate.crops")
     kcfg = make_config(ClipConfig, params.get("clip"), "evaluate.clip")
     result, style = read_ply(result_ply), read_ply(style_ply)
@@ -235,8 +240,15 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
             raise ValueError(f"{path}: {len(scene)} Gaussian(s); the metrics need at least 2")
     out = weights_free_metrics(result, content.means, style, mcfg)
     out.update({"clip_similarity": None, "clip_status": "", "clip_model": kcfg.model})
-    crops_a, _ = random_crops(read_frames(result_render), ccfg)
+    frames = read_frames(result_render)
+    reference = read_frames(content_render)
+    if frames.shape != reference.shape:
+        raise ValueError(f"{result_render}: frames {list(frames.shape)} differ from the content render "
+                         f"{content_render} {list(reference.shape)}; render both with the same settings")
+    out["coverage"] = coverage(frames[..., 3], reference[..., 3])
+    crops_a, _ = random_crops(frames, ccfg)
     crops_b, _ = random_crops(read_frames(style_render), ccfg)
+    out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
     out["crops"] = {"result": len(crops_a), "style": len(crops_b), "size": ccfg.size, "seed": ccfg.seed,
                     "min_alpha": ccfg.min_alpha}
     try:
@@ -248,6 +260,7 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         out["clip_similarity"] = clip_similarity(model, crops_a, crops_b, kcfg.batch, kcfg.device)
         out["clip_status"] = "computed"
     out.update({"result": str(result_ply), "content": str(content_ply), "style": str(style_ply),
-                "config": {"metrics": dataclasses.asdict(mcfg), "crops": dataclasses.asdict(ccfg),
+                "config": {"metrics": dataclasses.asdict(mcfg), "texture": dataclasses.asdict(tcfg),
+                           "crops": dataclasses.asdict(ccfg),
                            "clip": dataclasses.asdict(kcfg)}})
     write_json(out_json, out)

@@ -66,8 +66,8 @@ def to_markdown(df: pd.DataFrame) -> str:
 
 # ---- Table 1 ---------------------------------------------------------------------------------
 
-METRIC_COLUMNS = ("content_chamfer", "style_patch_chamfer", "style_patch_sinkhorn", "tilt_w1_deg", "aniso_w1",
-                  "colour_sinkhorn")
+METRIC_COLUMNS = ("content_chamfer", "coverage", "relief_w1", "texture_swd", "style_patch_chamfer",
+                  "style_patch_sinkhorn", "tilt_w1_deg", "aniso_w1", "colour_sinkhorn")
 
 
 def method_benchmarks(results: Path, content: str, style: str, method: str, partition: str | None) -> list[Path]:

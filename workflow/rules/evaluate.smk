@@ -68,12 +68,13 @@ rule evaluate:
         style=f"{RESULTS}/scenes/{{style}}/scene.ply",
         result_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}",
         style_render=f"{RESULTS}/render/scenes/{{style}}",
+        content_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
         clip=clip_inputs(),
     output:
         f"{RESULTS}/eval/{{content}}__{{style}}/{{method}}.json",
     params:
         exe=WAST3D,
-        cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "crops", "clip") if k in EVALUATION}),
+        cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "texture", "crops", "clip") if k in EVALUATION}),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -82,7 +83,7 @@ rule evaluate:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
         "{params.exe} evaluate {input.result} {input.content} {input.style} {input.result_render} "
-        "{input.style_render} {output} --params '{params.cfg}' 2> {log}"
+        "{input.style_render} {input.content_render} {output} --params '{params.cfg}' 2> {log}"
 
 
 rule comparison_sheet:

@@ -1,0 +1,124 @@
+"""Are the metrics able to see the style? Controls for every metric (issue #12).
+
+    python benchmarks/metrics_validation.py [--pairs ant:pebbles ant:grass ...] [--seeds 5] [--full]
+
+For each (content, style) pair, every style metric is computed for
+  floor     the style against an independent copy of itself (the procedural generator's seed 1),
+  negative  the unstylized content against the style,
+  positive  registration + selection without Sinkhorn (the selected style Gaussians of each cluster
+            mapped back unoptimized, rescale ratio 1): the style's own pieces on the content's shape,
+and the content metric (content_chamfer, in content spacings) for
+  floor     the content against a copy jittered by 0.5 content spacings,
+  negative  another shape (the airplane; both normalized to the unit ball),
+  positive  the same positive control,
+each at ``--seeds`` metric seeds (patches, crops and directions; the jitter for the content floor).
+spread = the largest standard deviation over seeds among the three cases. Verdict: **valid** when
+negative - floor >= 10 x spread and the positive control is closer to the floor than to the negative.
+Writes results/benchmarks/metrics_validation.{csv,png}. ``--full`` adds the patch-matching metrics and
+colour Sinkhorn (slow: seconds per call).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import OUT, PairRunner, demo_scene, render_frames, style_scores  # noqa: E402
+
+
+def verdict(floor: float, neg: float, pos: float, spread: float) -> str:
+    if neg - floor < 10 * spread:
+        return "invalid: negative - floor < 10 x spread"
+    if abs(pos - floor) >= abs(neg - pos):
+        return "invalid: positive not closer to the floor than to the negative"
+    return "valid"
+
+
+def main() -> None:
+    from wast3d.metrics import content_chamfer
+    from wast3d.registration import mean_spacing
+    from wast3d.stylize import StylizeConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"])
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--k", type=int, default=3, help="selection k of the positive control")
+    ap.add_argument("--full", action="store_true")
+    a = ap.parse_args()
+    torch.set_num_threads(2)
+    rows = []
+    tmp = Path(tempfile.mkdtemp(prefix="wast3d_validation_"))
+    for spec in a.pairs:
+        cname, sname = spec.split(":")
+        content, style, style_b = demo_scene(cname), demo_scene(sname), demo_scene(sname, seed=1)
+        other = demo_scene("airplane" if cname != "airplane" else "ant")
+        positive, _, _ = PairRunner(content, style).run(a.k, StylizeConfig(iterations=0))
+        fr = {n: render_frames(sc, ref, tmp / f"{spec}_{n}") for n, sc, ref in
+              (("style", style, style), ("floor", style_b, style_b), ("negative", content, content),
+               ("positive", positive, content))}
+        cases = {"floor": style_b, "negative": content, "positive": positive}
+        vals: dict[str, dict[str, list]] = {}
+        for seed in range(a.seeds):
+            for case, sc in cases.items():
+                for k, v in style_scores(sc, fr[case], style, fr["style"], seed, fast=not a.full).items():
+                    vals.setdefault(k, {}).setdefault(case, []).append(v)
+            h = mean_spacing(content.means)
+            g = torch.Generator().manual_seed(seed)
+            jit = content.means + 0.5 * h * torch.randn(content.means.shape, generator=g) / 3**0.5
+            cc = vals.setdefault("content_chamfer", {})
+            cc.setdefault("floor", []).append(content_chamfer(jit, content.means))
+            cc.setdefault("negative", []).append(content_chamfer(other.means, content.means))
+            cc.setdefault("positive", []).append(content_chamfer(positive.means, content.means))
+            print(f"{spec}: seed {seed} done", flush=True)
+        for metric, v in vals.items():
+            if not all(c in v for c in ("floor", "negative", "positive")):
+                continue
+            m = {c: float(np.mean(v[c])) for c in v}
+            spread = max(float(np.std(v[c], ddof=1)) if len(v[c]) > 1 else 0.0 for c in v)
+            rows.append({"pair": spec, "metric": metric, **m, "spread": spread,
+                         "separation": (m["negative"] - m["floor"]) / spread if spread > 0 else float("inf"),
+                         "verdict": verdict(m["floor"], m["negative"], m["positive"], spread)})
+            print(f"{spec} {metric:22s} floor {m['floor']:.4g} negative {m['negative']:.4g} positive "
+                  f"{m['positive']:.4g} spread {spread:.2g} -> {rows[-1]['verdict']}", flush=True)
+    OUT.mkdir(parents=True, exist_ok=True)
+    df = pd.DataFrame(rows)
+    df.to_csv(OUT / "metrics_validation.csv", index=False)
+    plot(df, OUT / "metrics_validation.png")
+    print(f"wrote {OUT / 'metrics_validation.csv'} and .png")
+
+
+def plot(df: pd.DataFrame, path: Path) -> None:
+    """One panel per metric: floor, positive and negative of each pair on a scale where floor = 0 and
+    negative = 1, with the 10 x spread band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    metrics = list(dict.fromkeys(df["metric"]))
+    fig, axes = plt.subplots(1, len(metrics), figsize=(3.2 * len(metrics), 3.2), squeeze=False)
+    for ax, met in zip(axes[0], metrics):
+        d = df[df.metric == met].reset_index(drop=True)
+        span = (d.negative - d.floor).where(lambda s: s.abs() > 0, 1e-12)
+        x = np.arange(len(d))
+        ax.bar(x, 10 * d.spread / span.abs(), color="0.85", label="10 x spread")
+        ax.scatter(x, np.zeros(len(d)), marker="_", s=200, c="k", label="floor")
+        ax.scatter(x, np.ones(len(d)), marker="x", c="tab:red", label="negative (content)")
+        ax.scatter(x, (d.positive - d.floor) / span, marker="o", c="tab:green", label="positive control")
+        ax.set_xticks(x, [p.split(":")[1] for p in d.pair], rotation=45)
+        ax.set_title(met, fontsize=9)
+        ax.set_ylim(-0.5, 2.0)
+    axes[0][0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    main()
