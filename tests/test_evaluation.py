@@ -436,3 +436,12 @@ def test_coverage_counts_holes_where_the_content_is():
     assert coverage(ref, torch.zeros(2, 10, 10)) == 1.0
     with pytest.raises(ValueError, match="differ in shape"):
         coverage(ref[:1], ref)
+
+
+def test_loss_picture_of_a_run_without_steps(tmp_path):
+    """The positive control 'selected' runs stylize with iterations: 0 (no loss curves at all)."""
+    from wast3d.figures import loss_curves_picture
+
+    loss_curves_picture([[], []], tmp_path / "l.png", "no steps")
+    loss_curves_picture([[0.3, 0.2], []], tmp_path / "m.png", "one")
+    assert (tmp_path / "l.png").stat().st_size > 0 and (tmp_path / "m.png").stat().st_size > 0

@@ -77,13 +77,14 @@ def loss_curves_picture(curves: list[list[float]], path: str | Path, title: str 
     fig, ax = plt.subplots(figsize=(6, 4))
     for c in curves:
         ax.plot(c, color="tab:blue", alpha=0.25, lw=0.8)
+    curves = [c for c in curves if len(c)]  # iterations: 0 (the positive control) has no curve
     if curves:
         L = min(len(c) for c in curves)
         ax.plot(np.mean([c[:L] for c in curves], 0), color="black", lw=2, label="mean over clusters")
         ax.legend()
     ax.set_xlabel("iteration")
     ax.set_ylabel("cluster loss (normalized units)")
-    if curves and min(min(c) for c in curves if c) > 0:
+    if curves and min(min(c) for c in curves) > 0:
         ax.set_yscale("log")
     ax.set_title(title)
     fig.tight_layout()
