@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -86,9 +86,6 @@ class StylizeConfig:
         if self.blur_units not in BLUR_UNITS:
             raise ValueError(f"stylize.blur_units must be one of {BLUR_UNITS}, got '{self.blur_units}'")
         if isinstance(self.sinkhorn, dict):
-            unknown = sorted(set(self.sinkhorn) - {f.name for f in fields(SinkhornConfig)})
-            if unknown:
-                raise ValueError(f"stylize.sinkhorn: unknown parameter(s) {', '.join(unknown)}")
             self.sinkhorn = SinkhornConfig(**{**SINKHORN_DEFAULTS, **self.sinkhorn})
 
 
