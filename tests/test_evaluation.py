@@ -324,6 +324,17 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
                  tmp_path / "rc", tmp_path / "clip.json", {**base, "clip": clip})
     ev = json.loads((tmp_path / "clip.json").read_text())
     assert ev["clip_status"] == "computed" and -100 <= ev["clip_similarity"] <= 100
+    # a collapsed result (what entropic OT without debiasing does at a large blur): no crop has enough
+    # foreground; evaluate still writes its metrics, coverage says how little is left, crops say why not
+    c0 = content.means.mean(0)
+    write_ply(tmp_path / "tiny.ply", content.transform(translation=c0 - 0.02 * c0, scale=0.02))
+    run_render(tmp_path / "tiny.ply", tmp_path / "c.ply", tmp_path / "rt", rp, progress=False)
+    run_evaluate(tmp_path / "tiny.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rt", tmp_path / "rs",
+                 tmp_path / "rc", tmp_path / "tiny.json", base)
+    ev = json.loads((tmp_path / "tiny.json").read_text())
+    assert ev["coverage"] < 0.1 and ev["texture_swd"] is None and ev["crops"]["result"] == 0
+    assert "no crop with mean alpha" in ev["texture_status"] and ev["clip_status"].startswith("not computed")
+    assert ev["content_chamfer"] > 1
     with pytest.raises(ValueError, match="evaluate.metrics: unknown parameter.*patchez"):
         run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc",
                      tmp_path / "rs", tmp_path / "rc", tmp_path / "x.json", {"metrics": {"patchez": 3}})

@@ -94,16 +94,24 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
 
 def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
     from .registration import Registration
-    from .selection import SelectConfig, select
+    from .selection import SelectConfig, select, select_footprint
 
-    k = make_config(SelectConfig, params, "select").k
+    cfg = make_config(SelectConfig, params, "select")
+    k = cfg.k
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
     reg = Registration.from_npz(load_npz(reg_npz))
-    offsets, indices = select(reg.apply(content.means.double(), labels), labels, style.means.double(), k)
+    mapped = reg.apply(content.means.double(), labels)
+    if cfg.mode == "footprint":
+        offsets, indices = select_footprint(mapped, labels, style.means.double(), cfg.radius, reg.style_spacing)
+    else:
+        offsets, indices = select(mapped, labels, style.means.double(), k)
     sizes = (offsets[1:] - offsets[:-1]).numpy()
+    if (sizes == 0).any():
+        log.warning("select: %d clusters got no style Gaussians (they are skipped by stylize)", int((sizes == 0).sum()))
     save_npz(out_npz, offsets=offsets.numpy(), indices=indices.numpy(), sizes=sizes, k=k)
-    write_json(Path(out_npz).with_suffix(".json"), {"k": k, "clusters": len(sizes), "selected_total": int(sizes.sum()),
+    write_json(Path(out_npz).with_suffix(".json"), {"k": k, "mode": cfg.mode, "radius": cfg.radius,
+                                                    "clusters": len(sizes), "selected_total": int(sizes.sum()),
                                                     "size_min": int(sizes.min()), "size_median": float(np.median(sizes)),
                                                     "size_max": int(sizes.max())})
 
@@ -246,19 +254,29 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         raise ValueError(f"{result_render}: frames {list(frames.shape)} differ from the content render "
                          f"{content_render} {list(reference.shape)}; render both with the same settings")
     out["coverage"] = coverage(frames[..., 3], reference[..., 3])
-    crops_a, _ = random_crops(frames, ccfg)
     crops_b, _ = random_crops(read_frames(style_render), ccfg)
-    out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
-    out["crops"] = {"result": len(crops_a), "style": len(crops_b), "size": ccfg.size, "seed": ccfg.seed,
-                    "min_alpha": ccfg.min_alpha}
     try:
-        model = load_clip(kcfg)
-    except ClipUnavailable as e:
-        out["clip_status"] = f"not computed: {e}"
-        log.warning("evaluate: CLIP similarity not computed: %s", e)
-    else:
-        out["clip_similarity"] = clip_similarity(model, crops_a, crops_b, kcfg.batch, kcfg.device)
-        out["clip_status"] = "computed"
+        crops_a, _ = random_crops(frames, ccfg)
+    except ValueError as e:  # a collapsed or scattered result (e.g. entropic OT without debiasing) is a
+        # result, not bad input: it gets no crop metrics and a low coverage, and the table says why
+        crops_a = None
+        why = f"not computed: {result_render}: no crop with mean alpha >= {ccfg.min_alpha} ({e}; coverage {out['coverage']:.3f})"
+        log.warning("evaluate: texture SWD and CLIP similarity %s", why)
+        out.update({"texture_swd": None, "texture_status": why, "clip_status": why})
+    if crops_a is not None:
+        out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
+        out["texture_status"] = "computed"
+    out["crops"] = {"result": 0 if crops_a is None else len(crops_a), "style": len(crops_b), "size": ccfg.size,
+                    "seed": ccfg.seed, "min_alpha": ccfg.min_alpha}
+    if crops_a is not None:
+        try:
+            model = load_clip(kcfg)
+        except ClipUnavailable as e:
+            out["clip_status"] = f"not computed: {e}"
+            log.warning("evaluate: CLIP similarity not computed: %s", e)
+        else:
+            out["clip_similarity"] = clip_similarity(model, crops_a, crops_b, kcfg.batch, kcfg.device)
+            out["clip_status"] = "computed"
     out.update({"result": str(result_ply), "content": str(content_ply), "style": str(style_ply),
                 "config": {"metrics": dataclasses.asdict(mcfg), "texture": dataclasses.asdict(tcfg),
                            "crops": dataclasses.asdict(ccfg),
