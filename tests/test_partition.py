@@ -5,7 +5,7 @@ import torch
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene
 from wast3d.registration import RegistrationConfig, random_rotation, register
-from wast3d.selection import select
+from wast3d.selection import SelectConfig, select, select_footprint
 from wast3d.surface import SurfaceConfig, sample_surface
 
 D64 = torch.float64
@@ -163,3 +163,54 @@ def test_removed_floaters_do_not_occlude_the_surface():
     idx, rep = sample_surface(scene, SurfaceConfig(views=12, resolution=64, outlier_quantile=0.75,
                                                    depth_tolerance=0.05))
     assert float((idx < 6000).sum()) / 6000 > 0.9
+
+
+def _ground_with_dome(spacing=0.05, dome=0.4):
+    """A flat ground z = 0 on a grid of ``spacing`` and, at the origin, a hemisphere of radius ``dome``
+    sampled on its surface at the same spacing (a pebble): [M, 3] and a mask of the dome's points."""
+    ax = torch.arange(-1, 1 + 1e-9, spacing, dtype=D64)
+    gx, gy = torch.meshgrid(ax, ax, indexing="ij")
+    ground = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros(gx.numel(), dtype=D64)], 1)
+    ground = ground[ground[:, :2].norm(dim=1) > dome]
+    n = int(2 * torch.pi * dome**2 / spacing**2)
+    i = torch.arange(n, dtype=D64) + 0.5
+    z = i / n  # uniform in height on a hemisphere = uniform in area
+    phi = i * torch.pi * (3 - 5**0.5)
+    r = (1 - z**2).sqrt()
+    top = dome * torch.stack([r * phi.cos(), r * phi.sin(), z], 1)
+    pts = torch.cat([ground, top])
+    return pts, torch.cat([torch.zeros(len(ground), dtype=torch.bool), torch.ones(len(top), dtype=torch.bool)])
+
+
+def test_footprint_selection_keeps_whole_elements_where_knn_takes_a_slab():
+    style, is_dome = _ground_with_dome()
+    # two flat content clusters registered onto the ground plane (grids at the style's spacing, shifted
+    # off the style's grid): one over the dome, one beside it
+    ax = torch.arange(-0.5, 0.5 + 1e-9, 0.05, dtype=D64) + 0.013
+    a = torch.stack(torch.meshgrid(ax, ax, indexing="ij"), -1).reshape(-1, 2)
+    b = a * 0.3 + torch.tensor([0.75, 0.75], dtype=D64)
+    mapped = torch.cat([torch.cat([a, torch.zeros(len(a), 1, dtype=D64)], 1), torch.cat([b, torch.zeros(len(b), 1, dtype=D64)], 1)])
+    labels = torch.cat([torch.zeros(len(a)), torch.ones(len(b))]).long()
+    off, idx = select_footprint(mapped, labels, style, 1.0, 0.05)
+    assert off[0] == 0 and off[-1] == len(idx) and len(off) == 3
+    d0, d1 = idx[off[0]:off[1]], idx[off[1]:off[2]]
+    assert torch.equal(d0, torch.sort(d0).values) and len(torch.unique(d0)) == len(d0)
+    # cluster 0 lies over the dome: every dome point is selected, up to its apex
+    assert bool(is_dome[d0].sum() == is_dome.sum())
+    # ... and nothing outside the footprint (in-plane distance <= 1 spacing of a mapped point)
+    flat = torch.cdist(style[d0, :2], a).min(1).values
+    assert float(flat.max()) <= 0.05 + 1e-12
+    # cluster 1 is beside the dome: ground only
+    assert not bool(is_dome[d1].any()) and len(d1) > 0
+    # eq. 8 with k = 3 around points on the ground keeps a slab: the dome's upper half is missed
+    off3, idx3 = select(mapped, labels, style, 3)
+    k0 = idx3[off3[0]:off3[1]]
+    assert float(style[k0][is_dome[k0], 2].max()) < 0.2 < float(style[d0][is_dome[d0], 2].max())
+
+
+def test_select_config_checks_mode_and_radius():
+    assert SelectConfig(mode="footprint", radius=2.0).mode == "footprint"
+    with pytest.raises(ValueError, match="select.mode"):
+        SelectConfig(mode="ball")
+    with pytest.raises(ValueError, match="radius"):
+        SelectConfig(mode="footprint", radius=0.0)

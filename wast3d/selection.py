@@ -5,20 +5,44 @@
 The k nearest style Gaussians of every registered content point, deduplicated per cluster. One
 KD-tree query serves all clusters. Stored as CSR: ``offsets`` [K+1] and ``indices`` (into the style
 scene), cluster i owning ``indices[offsets[i]:offsets[i+1]]``, sorted.
+
+``mode: footprint`` (our variant, not the paper's): the style Gaussians *under and over* the mapped
+cluster instead of the ones nearest to it,
+
+    D_i = { h in style :  min_{g in C_i} | P_i (h - S_i R_i (g_x - t_i)) | <= radius * spacing,
+                          | n_i . (h - c_i) | <= r_i }
+
+with n_i the least-variance axis of the mapped cluster (its normal), P_i the projection onto the plane
+orthogonal to n_i, c_i its centroid and r_i its radius. A kNN ball of small k around points that lie
+on the style's mean surface takes a slab of it and leaves the tops of the elements (pebble domes,
+blade tips) out; the footprint keeps every element the cluster covers whole. It assumes the style is
+a height field over the plane of each cluster at the cluster's scale (a ground with objects on it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from .geometry import knn
 
 
+MODES = ("knn", "footprint")
+
+
 @dataclass
 class SelectConfig:
     k: int = 3
+    mode: str = "knn"  # "knn": eq. 8; "footprint": see the module docstring
+    radius: float = 1.0  # footprint: in style spacings
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"select.mode must be one of {MODES}, got '{self.mode}'")
+        if self.k < 1 or not self.radius > 0:
+            raise ValueError(f"select: need k >= 1 and radius > 0 (k={self.k}, radius={self.radius})")
 
 
 @torch.no_grad()
@@ -31,8 +55,49 @@ def select(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Tensor, k: i
     _, idx = knn(mapped, style, k)
     key = labels.long()[:, None] * len(style) + idx
     key = torch.unique(key.reshape(-1))  # sorted: by cluster, then style index
-    cl = key // len(style)
-    indices = key % len(style)
+    return _csr(key // len(style), key % len(style), K)
+
+
+def _csr(cluster: torch.Tensor, indices: torch.Tensor, K: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(cluster id, style index) pairs, sorted by cluster then index -> (offsets [K+1], indices)."""
     offsets = torch.zeros(K + 1, dtype=torch.int64)
-    offsets[1:] = torch.cumsum(torch.bincount(cl, minlength=K), 0)
+    offsets[1:] = torch.cumsum(torch.bincount(cluster, minlength=K), 0)
     return offsets, indices
+
+
+@torch.no_grad()
+def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Tensor, radius: float,
+                     spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The footprint selection of the module docstring. mapped: [N,3], labels: [N], style: [M,3],
+    radius in units of ``spacing`` (the style's mean spacing) -> (offsets [K+1], indices), as :func:`select`.
+    """
+    from scipy.spatial import cKDTree
+
+    K = int(labels.max()) + 1
+    sty = style.double().numpy()
+    tree3 = cKDTree(sty)
+    lab = labels.long().numpy()
+    mp = mapped.double().numpy()
+    clusters, chosen = [], []
+    for i in range(K):
+        y = mp[lab == i]
+        if len(y) == 0:
+            continue
+        c = y.mean(0)
+        r = float(np.linalg.norm(y - c, axis=1).max()) if len(y) > 1 else spacing
+        n = np.linalg.eigh(np.cov((y - c).T) if len(y) > 2 else np.eye(3))[1][:, 0]
+        cand = np.asarray(tree3.query_ball_point(c, np.sqrt(2) * r + radius * spacing), dtype=np.int64)
+        if len(cand) == 0:
+            continue
+        d = sty[cand] - c
+        h = d @ n
+        cand, d = cand[np.abs(h) <= r], d[np.abs(h) <= r]
+        flat_y = (y - c) - np.outer((y - c) @ n, n)
+        flat_s = d - np.outer(d @ n, n)
+        dist, _ = cKDTree(flat_y).query(flat_s, k=1, distance_upper_bound=radius * spacing)
+        keep = np.sort(cand[np.isfinite(dist)])
+        clusters.append(np.full(len(keep), i, dtype=np.int64))
+        chosen.append(keep)
+    cl = torch.from_numpy(np.concatenate(clusters)) if clusters else torch.zeros(0, dtype=torch.int64)
+    ix = torch.from_numpy(np.concatenate(chosen)) if chosen else torch.zeros(0, dtype=torch.int64)
+    return _csr(cl, ix, K)
