@@ -30,6 +30,13 @@ def test_content_scenes(name):
     assert len(a) == 3000
     assert torch.isfinite(a.means).all() and float(a.means.norm(dim=1).max()) <= 1.0 + 1e-5
     assert torch.equal(a.means, make_scene("content", name, 3000, seed=0).means)
+    # shaped as a trained scene's Gaussians, not as the styles' discs: in-plane elongation (log-normal,
+    # median 1.5) and thin; so that a metric on Gaussian shape can tell a stylized result from the content
+    sc = a.scales.sort(dim=1, descending=True).values
+    assert 1.3 < float((sc[:, 0] / sc[:, 1]).median()) < 1.7
+    assert float((sc[:, 2] / sc[:, 0]).max()) <= 0.1 + 1e-5
+    st = make_scene("style", "pebbles", 3000, seed=0).scales.sort(dim=1, descending=True).values
+    assert float((st[:, 0] / st[:, 1]).median()) < 1.05
 
 
 def test_unknown_names():

@@ -10,9 +10,10 @@ in the spirit of the paper's style scenes:
 
 Content scenes are meshes that pyvista ships (``ant``, ``airplane``, ``nut``, ``globe``, and the
 parametric ``torus``/``sphere``), normalized to the unit ball, with Gaussians sampled on the surface
-(area-weighted) as flat discs facing the normal.
+(area-weighted), thin and facing the normal, with the log-normal in-plane elongation and size of a
+trained scene's Gaussians (so that metrics on Gaussian shape can tell the style's from the content's).
 
-Every generator is deterministic given its seed. Gaussians are surface discs: tangential scale
+Every generator is deterministic given its seed. Style Gaussians are surface discs: tangential scale
 0.6 x the sample spacing, normal scale ``flatness`` x that, so no needles appear (the paper
 regularizes its style scenes for the same reason).
 """
@@ -45,7 +46,7 @@ def surface_gaussians(points: np.ndarray, normals: np.ndarray, colors: np.ndarra
     """Disc-shaped Gaussians on a surface.
 
     points/normals/colors: [N, 3]; spacing: scalar or [N]. With ``tangent`` [N, 3] given, the first
-    axis follows it and is ``elongation`` times longer (blades, strands).
+    axis follows it and is ``elongation`` (scalar or [N]) times longer (blades, strands).
     """
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
     if tangent is not None:
@@ -55,7 +56,8 @@ def surface_gaussians(points: np.ndarray, normals: np.ndarray, colors: np.ndarra
     else:
         R = frame_from_normal(torch.from_numpy(n)).numpy()
     sp = np.broadcast_to(np.asarray(spacing, dtype=np.float64), (len(points),))[:, None] * 0.6
-    scales = np.concatenate([sp * elongation, sp, sp * flatness], axis=1)
+    el = np.broadcast_to(np.asarray(elongation, dtype=np.float64), (len(points),))[:, None]
+    scales = np.concatenate([sp * el, sp, sp * flatness], axis=1)
     q = rotmat_to_quat(torch.from_numpy(R))
     return GaussianScene.from_activated(
         torch.from_numpy(points).float(), torch.from_numpy(scales).float(), q.float(), opacities=opacity,
@@ -291,7 +293,14 @@ def content_scene(name: str, n_gaussians: int = 20000, seed: int = 0) -> Gaussia
     hue = CONTENT_COLORS.get(name, (0.7, 0.6, 0.5))
     base = np.asarray(hue)[None] * (0.55 + 0.45 * g[:, None])
     col = base * (0.8 + 0.2 * np.abs(nrm[:, 2:3]))
-    return surface_gaussians(pts, nrm, col, spacing, flatness=0.3)
+    # Gaussians shaped as a trained scene's are, not as the styles' round discs: thin (flatness 0.1),
+    # elongated in the surface by a log-normal aspect (median 1.5) along a random tangent, log-normal
+    # sizes (sigma 0.25) at the same area per Gaussian; so that the style's own Gaussian shapes
+    # (aniso_w1) and orientations tell a stylized result from the content
+    t = rng.standard_normal((n_gaussians, 3))
+    el = np.exp(rng.normal(np.log(1.5), 0.35, n_gaussians))
+    sp = spacing * np.exp(rng.normal(0.0, 0.25, n_gaussians)) / np.sqrt(el)
+    return surface_gaussians(pts, nrm, col, sp, flatness=0.1, tangent=t, elongation=el)
 
 
 def make_scene(kind: str, name: str, n_gaussians: int, seed: int = 0) -> GaussianScene:
