@@ -1,7 +1,8 @@
 """Geometry helpers shared by the stages: nearest neighbours (initialization, surface sampling,
 registration, selection, scale readjustment), Kabsch rotations and frames from normals.
 
-On CPU a KD-tree (``scipy.spatial.cKDTree``, multi-threaded queries) is used; on CUDA a chunked
+On CPU a KD-tree (``scipy.spatial.cKDTree``, queries on ``torch.get_num_threads()`` threads, so that a
+job keeps to the threads it was given) is used; on CUDA a chunked
 ``torch.cdist`` that never materializes more than ``chunk x M`` distances.
 """
 
@@ -34,7 +35,7 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int, exclude_self: bool = Fal
         d, i = torch.cat(ds), torch.cat(ids)
     else:
         tree = cKDTree(ref.detach().double().cpu().numpy())
-        dn, inn = tree.query(query.detach().double().cpu().numpy(), k=kk, workers=-1)
+        dn, inn = tree.query(query.detach().double().cpu().numpy(), k=kk, workers=torch.get_num_threads())
         dn = np.asarray(dn).reshape(len(query), kk)
         inn = np.asarray(inn).reshape(len(query), kk)
         d = torch.from_numpy(dn).to(query.dtype)
