@@ -101,13 +101,18 @@ class PairRunner:
         self.reg_seconds = time.perf_counter() - t
         self.mapped = self.reg.apply(content.means.double(), self.labels)
 
-    def run(self, k: int, stylize_cfg, bound: float = 2.0):
+    def run(self, k: int, stylize_cfg, bound: float = 2.0, mode: str = "knn", radius: float = 1.0):
+        """``mode``/``radius``: the selection (knn: eq. 8 with ``k``; footprint: see wast3d.selection)."""
         from wast3d.rescale import readjust_scales
-        from wast3d.selection import select
+        from wast3d.selection import select, select_footprint
         from wast3d.stylize import stylize
 
         t = time.perf_counter()
-        off, idx = select(self.mapped, self.labels, self.style.means.double(), k)
+        if mode == "footprint":
+            off, idx = select_footprint(self.mapped, self.labels, self.style.means.double(), radius,
+                                        self.reg.style_spacing)
+        else:
+            off, idx = select(self.mapped, self.labels, self.style.means.double(), k)
         out, labs, curves, secs, before = stylize(self.content, self.labels, self.style, self.reg, off, idx,
                                                   stylize_cfg, progress=False)
         final, _ = readjust_scales(out, before, labs, 8, bound)

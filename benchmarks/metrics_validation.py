@@ -5,8 +5,9 @@
 For each (content, style) pair, every style metric is computed for
   floor     the style against an independent copy of itself (the procedural generator's seed 1),
   negative  the unstylized content against the style,
-  positive  registration + selection without Sinkhorn (the selected style Gaussians of each cluster
-            mapped back unoptimized, rescale ratio 1): the style's own pieces on the content's shape,
+  positive  a collage: registration + footprint selection without Sinkhorn (every style Gaussian over
+            and under each registered cluster, mapped back unoptimized; wast3d.selection
+            ``mode: footprint``): the style's own elements, whole, on the content's shape,
 and the content metric (content_chamfer, in content spacings) for
   floor     the content against a copy jittered by 0.5 content spacings,
   negative  another shape (the airplane; both normalized to the unit ball),
@@ -47,9 +48,10 @@ def main() -> None:
     from wast3d.stylize import StylizeConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"])
+    ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"],
+                    help="content:style; lego:STYLE once results/scenes/lego/surface.ply exists")
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--k", type=int, default=3, help="selection k of the positive control")
+    ap.add_argument("--radius", type=float, default=1.0, help="footprint radius of the positive control (style spacings)")
     ap.add_argument("--full", action="store_true")
     a = ap.parse_args()
     torch.set_num_threads(2)
@@ -58,8 +60,11 @@ def main() -> None:
     for spec in a.pairs:
         cname, sname = spec.split(":")
         content, style, style_b = demo_scene(cname), demo_scene(sname), demo_scene(sname, seed=1)
-        other = demo_scene("airplane" if cname != "airplane" else "ant")
-        positive, _, _ = PairRunner(content, style).run(a.k, StylizeConfig(iterations=0))
+        other = demo_scene("airplane" if cname != "airplane" else "ant").means.double()
+        cc0, oc0 = content.means.double().mean(0), other.mean(0)  # the other shape at the content's place and size
+        other = (other - oc0) * ((content.means.double() - cc0).norm(dim=1).max() / (other - oc0).norm(dim=1).max()) + cc0
+        positive, _, _ = PairRunner(content, style).run(1, StylizeConfig(iterations=0), mode="footprint",
+                                                        radius=a.radius)
         fr = {n: render_frames(sc, ref, tmp / f"{spec}_{n}") for n, sc, ref in
               (("style", style, style), ("floor", style_b, style_b), ("negative", content, content),
                ("positive", positive, content))}
@@ -74,7 +79,7 @@ def main() -> None:
             jit = content.means + 0.5 * h * torch.randn(content.means.shape, generator=g) / 3**0.5
             cc = vals.setdefault("content_chamfer", {})
             cc.setdefault("floor", []).append(content_chamfer(jit, content.means))
-            cc.setdefault("negative", []).append(content_chamfer(other.means, content.means))
+            cc.setdefault("negative", []).append(content_chamfer(other.float(), content.means))
             cc.setdefault("positive", []).append(content_chamfer(positive.means, content.means))
             print(f"{spec}: seed {seed} done", flush=True)
         for metric, v in vals.items():
