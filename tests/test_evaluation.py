@@ -434,6 +434,33 @@ def test_texture_swd_zero_for_identical_and_sees_a_flat_image():
         texture_swd(rough[:0], rough, cfg)
 
 
+def test_valid_3d_metrics_order_floor_positive_negative():
+    """What benchmarks/metrics_validation.py checks at demo size, on small scenes: for relief_w1 and
+    aniso_w1, the style's other seed (floor) < the collage of the style's elements on the content
+    (positive) < the plain content (negative)."""
+    from wast3d.clustering import ClusterConfig, kmeans
+    from wast3d.gaussians import anisotropy
+    from wast3d.metrics import MetricsConfig, relief_w1, wasserstein_1d
+    from wast3d.registration import RegistrationConfig, register
+    from wast3d.selection import select_footprint
+    from wast3d.stylize import StylizeConfig, stylize
+
+    content = make_scene("content", "ant", 4000)
+    style, other = make_scene("style", "pebbles", 6000, seed=0), make_scene("style", "pebbles", 6000, seed=1)
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=400))[0]).long()
+    reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=4, iterations=20,
+                                                                           refine_iterations=30))
+    off, idx = select_footprint(reg.apply(content.means.double(), labels), labels, style.means.double(), 1.0,
+                                reg.style_spacing)
+    collage = stylize(content, labels, style, reg, off, idx, StylizeConfig(iterations=0), progress=False)[0]
+    cfg = MetricsConfig(relief_centres=1024)
+    aniso = lambda sc: wasserstein_1d(anisotropy(sc.scales.double()).log10(),  # noqa: E731
+                                      anisotropy(style.scales.double()).log10())
+    for name, score in (("relief_w1", lambda sc: relief_w1(sc.means, style.means, cfg)), ("aniso_w1", aniso)):
+        floor, positive, negative = score(other), score(collage), score(content)
+        assert floor < positive < negative, (name, floor, positive, negative)
+
+
 def test_coverage_counts_holes_where_the_content_is():
     from wast3d.image_metrics import coverage
 
