@@ -264,3 +264,28 @@ def test_tolerance_converges_the_potentials():
     assert not capped.info["converged"] and not capped.potentials.converged
     with pytest.raises(ValueError, match="tol"):
         SinkhornConfig(tol=-1.0)
+
+
+def test_flow_optimizer_steps_towards_the_transport_target():
+    """optimizer 'flow': the first step is exactly y - lr * M * dS/dy (the Sinkhorn gradient flow), and
+    along the flow the divergence falls; Adam moves every point by ~lr whatever its gradient."""
+    from wast3d.stylize import StylizeConfig, stylize_cluster
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(200, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.05], dtype=torch.float64)
+    y = torch.rand(150, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.3], dtype=torch.float64)
+    rgb_x, rgb_y = torch.full((200, 3), 0.5, dtype=torch.float64), torch.full((150, 3), 0.5, dtype=torch.float64)
+    sk = SinkhornConfig(blur=0.3, tol=1e-6, max_iters=500)
+    cfg = StylizeConfig(features="xyz", iterations=1, optimizer="flow", lr=0.3, dtype="float64", sinkhorn=sk)
+    one = stylize_cluster(x, rgb_x, y, rgb_y, cfg)
+    from wast3d.stylize import normalize_pair
+
+    c, r = normalize_pair(x)
+    res = sinkhorn((x - c) / r, (y - c) / r, sk)
+    expect = ((y - c) / r - 0.3 * len(y) * res.grad_y) * r + c
+    assert torch.allclose(one.positions, expect, atol=1e-9)
+    many = stylize_cluster(x, rgb_x, y, rgb_y, StylizeConfig(features="xyz", iterations=30, optimizer="flow", lr=0.3,
+                                                             dtype="float64", sinkhorn=sk))
+    assert many.losses[-1] < 0.2 * many.losses[0] and min(many.losses) >= -1e-6 * many.losses[0]
+    with pytest.raises(ValueError, match="stylize.optimizer"):
+        StylizeConfig(optimizer="sgd")

@@ -17,7 +17,9 @@ For cluster i, in the registered (style) frame:
 - features (the paper's ablation): ``xyz`` (positions only), ``xyz+lum`` (default: positions and
   ``colour_weight * Y`` with Rec. 601 luma Y = 0.299 R + 0.587 G + 0.114 B), ``xyz+rgb``;
 - the optimized variables are the style Gaussians' normalized positions and colour offsets (one
-  luminance offset per Gaussian, or three RGB offsets), with Adam; the content is fixed.
+  luminance offset per Gaussian, or three RGB offsets), with Adam (``optimizer: adam``) or by the
+  Sinkhorn gradient flow (``optimizer: flow``: plain steps along ``-M grad``, i.e. towards each
+  point's transport target); the content is fixed.
   Clusters are independent terms of eq. 9 and Adam is per-parameter, so optimizing them one after
   another is the same as optimizing the sum;
 - colour update: a luminance offset dY is added to all three channels, ``rgb' = rgb + dY``: the
@@ -69,6 +71,7 @@ class StylizeConfig:
     iterations: int = 60
     lr: float = 0.01
     lr_colour: float = 0.02
+    optimizer: str = "adam"  # "adam" | "flow" (see stylize_cluster; flow wants lr ~0.05-0.5)
     loss: str = "sinkhorn"  # "sinkhorn" | "arap"
     warm_start: bool = True
     arap_weight: float = 1.0
@@ -83,6 +86,8 @@ class StylizeConfig:
             raise ValueError(f"stylize.features must be one of {FEATURES}, got '{self.features}'")
         if self.loss not in ("sinkhorn", "arap"):
             raise ValueError(f"stylize.loss must be 'sinkhorn' or 'arap', got '{self.loss}'")
+        if self.optimizer not in ("adam", "flow"):
+            raise ValueError(f"stylize.optimizer must be 'adam' or 'flow', got '{self.optimizer}'")
         if self.blur_units not in BLUR_UNITS:
             raise ValueError(f"stylize.blur_units must be one of {BLUR_UNITS}, got '{self.blur_units}'")
         if isinstance(self.sinkhorn, dict):
@@ -142,7 +147,13 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
     groups = [{"params": [Y], "lr": cfg.lr}]
     if dC.shape[1]:
         groups.append({"params": [dC], "lr": cfg.lr_colour})
-    opt = torch.optim.Adam(groups)
+    # "adam": per-coordinate normalized steps of ~lr whatever the gradient's size, so points the
+    # transport barely pulls still move by ~lr per step (noise on the style's surfaces). "flow": the
+    # Sinkhorn gradient flow, y_j <- y_j - lr * M * dS/dy_j = y_j - lr * (y_j - T(y_j)) with T the
+    # (debiased, blurred) transport target: a displacement field smooth at the scale gamma, so that
+    # the style's elements move as wholes
+    opt = torch.optim.Adam(groups) if cfg.optimizer == "adam" else torch.optim.SGD(groups)
+    flow = float(len(Y)) if cfg.optimizer == "flow" else 1.0
     losses = []
     pot = None
     arap = _ArapState(yn, cfg.arap_k) if cfg.loss == "arap" else None
@@ -153,14 +164,18 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
             res = sinkhorn(xf, yf.detach(), cfg.sinkhorn, init=pot if cfg.warm_start else None, x_fixed=True)
             pot = res.potentials
             gy = res.grad_y
-            Y.grad = gy[:, :3].contiguous()
+            Y.grad = flow * gy[:, :3].contiguous()
             if dC.shape[1]:
-                dC.grad = (w * gy[:, 3:]).contiguous()
+                dC.grad = (flow * w * gy[:, 3:]).contiguous()
             losses.append(float(res.value))
         else:
             loss = arap.loss(xf, yf, Y, cfg.arap_weight)
             loss.backward()
             losses.append(float(loss))
+            if flow != 1.0:
+                Y.grad.mul_(flow)
+                if dC.grad is not None:
+                    dC.grad.mul_(flow)
         if not (torch.isfinite(Y.grad).all() and (dC.grad is None or torch.isfinite(dC.grad).all())):
             raise FloatingPointError(f"stylize: non-finite gradient at iteration {it}")
         opt.step()
