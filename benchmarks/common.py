@@ -132,8 +132,6 @@ def render_frames(scene, reference, folder: Path, frames: int = 24, size: int = 
 def style_scores(result, result_frames, style, style_frames, seed: int, fast: bool = False) -> dict:
     """Every style metric of a result at one metric seed (patches, crops and directions all drawn
     from it). ``fast`` leaves out the slow patch-matching metrics."""
-    from wast3d.clip_eval import CropConfig, random_crops
-    from wast3d.image_metrics import TextureConfig, texture_swd
     from wast3d.metrics import MetricsConfig, relief_w1, style_metrics
 
     m = MetricsConfig(seed=seed)
@@ -147,7 +145,14 @@ def style_scores(result, result_frames, style, style_frames, seed: int, fast: bo
                                           anisotropy(style.scales.double()).log10())}
     else:
         out = style_metrics(result, style, m)
-    ca, _ = random_crops(result_frames, CropConfig(seed=seed))
-    cb, _ = random_crops(style_frames, CropConfig(seed=seed))
-    out["texture_swd"] = texture_swd(ca, cb, TextureConfig(seed=seed))
+    out["texture_swd"] = texture_score(result_frames, style_frames, seed)
     return out
+
+
+def texture_score(result_frames, style_frames, seed: int) -> float:
+    """texture_swd as the evaluate stage computes it (the CLIP crops of both renders)."""
+    from wast3d.clip_eval import CropConfig, random_crops
+    from wast3d.image_metrics import TextureConfig, texture_swd
+
+    cc = CropConfig(seed=seed)
+    return texture_swd(random_crops(result_frames, cc)[0], random_crops(style_frames, cc)[0], TextureConfig(seed=seed))

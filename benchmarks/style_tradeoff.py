@@ -5,7 +5,7 @@ against run time".
 
 For each (content, style) pair, stages 3-6 run with the library's functions (k-means and registration
 cached per registration scale, benchmarks/common.PairRunner) for every variant below, one setting
-changed at a time from ``base``; every result is rendered (24 turntable frames, 256 px, cameras fitted
+changed at a time from ``base`` (and a few from ``footprint``); every result is rendered (24 turntable frames, 256 px, cameras fitted
 to the content) and scored:
 
   content_chamfer  result vs content surface, in content spacings (lower: the content's shape)
@@ -36,7 +36,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, PairRunner, demo_scene, render_frames  # noqa: E402
+from common import OUT, PairRunner, demo_scene, render_frames, texture_score  # noqa: E402
 
 BASE = {"reg": 1.0, "select": {"mode": "knn", "k": 3}, "stylize": {"iterations": 60, "sinkhorn": {"blur": 0.3, "tol": 1e-3}},
         "bound": 2.0}
@@ -72,14 +72,20 @@ VARIANTS = {
     "steps_120": _with(stylize={"iterations": 120}),
     "bound_1.2": _with(bound=1.2),
     "bound_4": _with(bound=4.0),
+    "footprint_steps_20": _with(select={"mode": "footprint", "radius": 1.0}, stylize={"iterations": 20}),
+    "footprint_lr_0.003": _with(select={"mode": "footprint", "radius": 1.0}, stylize={"lr": 0.003}),
+    "lr_0.003": _with(stylize={"lr": 0.003}),
+    "flow": _with(stylize={"optimizer": "flow", "lr": 0.1}),
+    "footprint_flow": _with(select={"mode": "footprint", "radius": 1.0}, stylize={"optimizer": "flow", "lr": 0.1}),
+    "footprint_flow_gamma_0.1": _with(select={"mode": "footprint", "radius": 1.0},
+                                      stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": 0.1, "tol": 0.0}}),
     "collage": _with(select={"mode": "footprint", "radius": 1.0}, stylize={"iterations": 0}),
     "input": None,
 }
 
 
 def main() -> None:
-    from wast3d.clip_eval import CropConfig, random_crops
-    from wast3d.image_metrics import TextureConfig, coverage, texture_swd
+    from wast3d.image_metrics import coverage
     from wast3d.metrics import MetricsConfig, content_chamfer, relief_w1, tilt_degrees, wasserstein_1d
     from wast3d.registration import mean_spacing
     from wast3d.sinkhorn import SinkhornConfig
@@ -132,11 +138,9 @@ def main() -> None:
                    "coverage": coverage(frames[..., 3], content_frames[..., 3])}
             for seed in range(a.seeds):
                 m = MetricsConfig(seed=seed)
-                ca, _ = random_crops(frames, CropConfig(seed=seed))
-                cb, _ = random_crops(style_frames, CropConfig(seed=seed))
                 vals = {"relief_w1": relief_w1(result.means, style.means, m),
                         "tilt_w1_deg": wasserstein_1d(tilt_degrees(result, m.normal_k), tilt_degrees(style, m.normal_k)),
-                        "texture_swd": texture_swd(ca, cb, TextureConfig(seed=seed))}
+                        "texture_swd": texture_score(frames, style_frames, seed)}
                 for k, val in vals.items():
                     row[k] = row.get(k, 0.0) + val / a.seeds
             row["negative_losses"] = int(sum(1 for c in curves if c and min(c) < -1e-6 * abs(c[0])))

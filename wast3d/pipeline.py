@@ -264,8 +264,12 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         log.warning("evaluate: texture SWD and CLIP similarity %s", why)
         out.update({"texture_swd": None, "texture_status": why, "clip_status": why})
     if crops_a is not None:
-        out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
-        out["texture_status"] = "computed"
+        try:
+            out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
+            out["texture_status"] = "computed"
+        except ValueError as e:
+            out.update({"texture_swd": None, "texture_status": f"not computed: {e}"})
+            log.warning("evaluate: texture SWD not computed: %s", e)
     out["crops"] = {"result": 0 if crops_a is None else len(crops_a), "style": len(crops_b), "size": ccfg.size,
                     "seed": ccfg.seed, "min_alpha": ccfg.min_alpha}
     if crops_a is not None:
