@@ -38,7 +38,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import OUT, PairRunner, demo_scene, render_frames, texture_score  # noqa: E402
 
-BASE = {"reg": 1.0, "select": {"mode": "knn", "k": 3}, "stylize": {"iterations": 60, "sinkhorn": {"blur": 0.3, "tol": 1e-3}},
+# base: the previous default (eq. 8 kNN selection with k = 3, Adam at lr 0.01, gamma 0.3)
+BASE = {"reg": 1.0, "select": {"mode": "knn", "k": 3},
+        "stylize": {"iterations": 60, "optimizer": "adam", "lr": 0.01, "sinkhorn": {"blur": 0.3, "tol": 1e-3}},
         "bound": 2.0}
 
 
@@ -77,6 +79,18 @@ VARIANTS = {
     "lr_0.003": _with(stylize={"lr": 0.003}),
     "flow": _with(stylize={"optimizer": "flow", "lr": 0.1}),
     "footprint_flow": _with(select={"mode": "footprint", "radius": 1.0}, stylize={"optimizer": "flow", "lr": 0.1}),
+    **{f"footprint_flow_gamma_{g:g}": _with(select={"mode": "footprint", "radius": 1.0},
+                                            stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": g}})
+       for g in (0.6, 1.0)},
+    "footprint_flow_gamma_0.45": _with(select={"mode": "footprint", "radius": 1.0},
+                                       stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": 0.45}}),
+    **{f"footprint_r1.5_flow_gamma_{g:g}": _with(select={"mode": "footprint", "radius": 1.5},
+                                                 stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": g}})
+       for g in (0.3, 0.45, 0.6)},
+    "footprint_r2_flow_gamma_0.3": _with(select={"mode": "footprint", "radius": 2.0},
+                                         stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": 0.3}}),
+    "footprint_flow_gamma_0.6_bound_4": _with(select={"mode": "footprint", "radius": 1.0}, bound=4.0,
+                                              stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": 0.6}}),
     "footprint_flow_gamma_0.1": _with(select={"mode": "footprint", "radius": 1.0},
                                       stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": 0.1, "tol": 0.0}}),
     "collage": _with(select={"mode": "footprint", "radius": 1.0}, stylize={"iterations": 0}),

@@ -34,9 +34,9 @@ MODES = ("knn", "footprint")
 
 @dataclass
 class SelectConfig:
-    k: int = 3
-    mode: str = "knn"  # "knn": eq. 8; "footprint": see the module docstring
-    radius: float = 1.0  # footprint: in style spacings
+    k: int = 3  # knn
+    mode: str = "footprint"  # "knn": eq. 8; "footprint" (default): see the module docstring
+    radius: float = 1.5  # footprint: in style spacings
 
     def __post_init__(self):
         if self.mode not in MODES:
