@@ -87,6 +87,9 @@ VARIANTS = {
     **{f"footprint_r1.5_flow_gamma_{g:g}": _with(select={"mode": "footprint", "radius": 1.5},
                                                  stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": g}})
        for g in (0.3, 0.45, 0.6)},
+    "footprint_r1.5_flow_gamma_0.3_steps_30_lr_0.2": _with(
+        select={"mode": "footprint", "radius": 1.5},
+        stylize={"optimizer": "flow", "lr": 0.2, "iterations": 30, "sinkhorn": {"blur": 0.3}}),
     "footprint_r2_flow_gamma_0.3": _with(select={"mode": "footprint", "radius": 2.0},
                                          stylize={"optimizer": "flow", "lr": 0.1, "sinkhorn": {"blur": 0.3}}),
     "footprint_flow_gamma_0.6_bound_4": _with(select={"mode": "footprint", "radius": 1.0}, bound=4.0,

@@ -70,8 +70,8 @@ BLUR_UNITS = ("cluster", "scene")
 class StylizeConfig:
     features: str = "xyz+lum"
     colour_weight: float = 0.5
-    iterations: int = 60
-    lr: float = 0.1
+    iterations: int = 30
+    lr: float = 0.2
     lr_colour: float = 0.02
     optimizer: str = "flow"  # "flow" | "adam" (see stylize_cluster; Adam wants lr ~0.01)
     loss: str = "sinkhorn"  # "sinkhorn" | "arap"
