@@ -53,6 +53,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--radius", type=float, default=1.0, help="footprint radius of the positive control (style spacings)")
     ap.add_argument("--full", action="store_true")
+    ap.add_argument("--out", default=str(OUT / "metrics_validation.csv"), help="CSV (the PNG beside it)")
     a = ap.parse_args()
     torch.set_num_threads(2)
     rows = []
@@ -92,11 +93,12 @@ def main() -> None:
                          "verdict": verdict(m["floor"], m["negative"], m["positive"], spread)})
             print(f"{spec} {metric:22s} floor {m['floor']:.4g} negative {m['negative']:.4g} positive "
                   f"{m['positive']:.4g} spread {spread:.2g} -> {rows[-1]['verdict']}", flush=True)
-    OUT.mkdir(parents=True, exist_ok=True)
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     df = pd.DataFrame(rows)
-    df.to_csv(OUT / "metrics_validation.csv", index=False)
-    plot(df, OUT / "metrics_validation.png")
-    print(f"wrote {OUT / 'metrics_validation.csv'} and .png")
+    df.to_csv(out, index=False)
+    plot(df, out.with_suffix(".png"))
+    print(f"wrote {out} and {out.with_suffix('.png')}")
 
 
 def plot(df: pd.DataFrame, path: Path) -> None:

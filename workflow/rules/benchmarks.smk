@@ -21,7 +21,49 @@ rule sinkhorn_error_vs_time:
         "--out {output.csv} > {log} 2>&1"
 
 
+rule metrics_validation:
+    output:
+        csv=f"{RESULTS}/benchmarks/metrics_validation.csv",
+        png=report(f"{RESULTS}/benchmarks/metrics_validation.png",
+                   caption="../report/metrics_validation.rst", category="Benchmarks"),
+    params:
+        exe=sys.executable,
+        script=f"{workflow.basedir}/benchmarks/metrics_validation.py",
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/benchmarks/metrics_validation.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/metrics_validation.tsv"
+    shell:
+        "{params.exe} {params.script} --seeds 5 --out {output.csv} > {log} 2>&1"
+
+
+# every variant on ant x pebbles, the previous and the new default and the references on the others
+# (about an hour on 2 cores)
+rule style_tradeoff:
+    output:
+        csv=f"{RESULTS}/benchmarks/style_tradeoff.csv",
+        png=report(f"{RESULTS}/benchmarks/style_tradeoff.png",
+                   caption="../report/style_tradeoff.rst", category="Benchmarks"),
+    params:
+        exe=sys.executable,
+        script=f"{workflow.basedir}/benchmarks/style_tradeoff.py",
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/benchmarks/style_tradeoff.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/style_tradeoff.tsv"
+    shell:
+        "({params.exe} {params.script} --pairs ant:pebbles --out {output.csv} && "
+        "{params.exe} {params.script} --pairs ant:grass ant:wicker ant:stones --variants base "
+        "footprint_r1.5_flow_gamma_0.3_steps_30_lr_0.2 collage input --out {output.csv}) > {log} 2>&1"
+
+
 rule benchmarks:
     input:
         f"{RESULTS}/benchmarks/sinkhorn_error_vs_time.csv",
+        f"{RESULTS}/benchmarks/metrics_validation.csv",
+        f"{RESULTS}/benchmarks/style_tradeoff.csv",
     default_target: False
