@@ -104,15 +104,12 @@ class PairRunner:
     def run(self, k: int, stylize_cfg, bound: float = 2.0, mode: str = "knn", radius: float = 1.0):
         """``mode``/``radius``: the selection (knn: eq. 8 with ``k``; footprint: see wast3d.selection)."""
         from wast3d.rescale import readjust_scales
-        from wast3d.selection import select, select_footprint
+        from wast3d.selection import SelectConfig, select_with
         from wast3d.stylize import stylize
 
         t = time.perf_counter()
-        if mode == "footprint":
-            off, idx = select_footprint(self.mapped, self.labels, self.style.means.double(), radius,
-                                        self.reg.style_spacing)
-        else:
-            off, idx = select(self.mapped, self.labels, self.style.means.double(), k)
+        off, idx = select_with(SelectConfig(k=k, mode=mode, radius=radius), self.mapped, self.labels,
+                               self.style.means.double(), self.reg.style_spacing)
         out, labs, curves, secs, before = stylize(self.content, self.labels, self.style, self.reg, off, idx,
                                                   stylize_cfg, progress=False)
         final, _ = readjust_scales(out, before, labs, 8, bound)

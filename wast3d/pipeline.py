@@ -94,18 +94,15 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
 
 def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
     from .registration import Registration
-    from .selection import SelectConfig, select, select_footprint
+    from .selection import SelectConfig, select_with
 
     cfg = make_config(SelectConfig, params, "select")
     k = cfg.k
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
     reg = Registration.from_npz(load_npz(reg_npz))
-    mapped = reg.apply(content.means.double(), labels)
-    if cfg.mode == "footprint":
-        offsets, indices = select_footprint(mapped, labels, style.means.double(), cfg.radius, reg.style_spacing)
-    else:
-        offsets, indices = select(mapped, labels, style.means.double(), k)
+    offsets, indices = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
+                                   reg.style_spacing)
     sizes = (offsets[1:] - offsets[:-1]).numpy()
     if (sizes == 0).any():
         log.warning("select: %d clusters got no style Gaussians (they are skipped by stylize)", int((sizes == 0).sum()))
@@ -263,6 +260,8 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         why = f"not computed: {result_render}: no crop with mean alpha >= {ccfg.min_alpha} ({e}; coverage {out['coverage']:.3f})"
         log.warning("evaluate: texture SWD and CLIP similarity %s", why)
         out.update({"texture_swd": None, "texture_status": why, "clip_status": why})
+    out["crops"] = {"result": 0 if crops_a is None else len(crops_a), "style": len(crops_b), "size": ccfg.size,
+                    "seed": ccfg.seed, "min_alpha": ccfg.min_alpha}
     if crops_a is not None:
         try:
             out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
@@ -270,9 +269,6 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         except ValueError as e:
             out.update({"texture_swd": None, "texture_status": f"not computed: {e}"})
             log.warning("evaluate: texture SWD not computed: %s", e)
-    out["crops"] = {"result": 0 if crops_a is None else len(crops_a), "style": len(crops_b), "size": ccfg.size,
-                    "seed": ccfg.seed, "min_alpha": ccfg.min_alpha}
-    if crops_a is not None:
         try:
             model = load_clip(kcfg)
         except ClipUnavailable as e:

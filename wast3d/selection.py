@@ -90,8 +90,8 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
         if len(cand) == 0:
             continue
         d = sty[cand] - c
-        h = d @ n
-        cand, d = cand[np.abs(h) <= r], d[np.abs(h) <= r]
+        near = np.abs(d @ n) <= r
+        cand, d = cand[near], d[near]
         flat_y = (y - c) - np.outer((y - c) @ n, n)
         flat_s = d - np.outer(d @ n, n)
         dist, _ = cKDTree(flat_y).query(flat_s, k=1, distance_upper_bound=radius * spacing)
@@ -101,3 +101,12 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
     cl = torch.from_numpy(np.concatenate(clusters)) if clusters else torch.zeros(0, dtype=torch.int64)
     ix = torch.from_numpy(np.concatenate(chosen)) if chosen else torch.zeros(0, dtype=torch.int64)
     return _csr(cl, ix, K)
+
+
+def select_with(cfg: SelectConfig, mapped: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
+                spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The selection ``cfg`` names: :func:`select` (``knn``, k) or :func:`select_footprint` (radius in
+    units of ``spacing``, the style's mean spacing)."""
+    if cfg.mode == "footprint":
+        return select_footprint(mapped, labels, style, cfg.radius, spacing)
+    return select(mapped, labels, style, cfg.k)

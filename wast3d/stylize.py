@@ -166,18 +166,18 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
             res = sinkhorn(xf, yf.detach(), cfg.sinkhorn, init=pot if cfg.warm_start else None, x_fixed=True)
             pot = res.potentials
             gy = res.grad_y
-            Y.grad = flow * gy[:, :3].contiguous()
+            Y.grad = gy[:, :3].contiguous()
             if dC.shape[1]:
-                dC.grad = (flow * w * gy[:, 3:]).contiguous()
+                dC.grad = (w * gy[:, 3:]).contiguous()
             losses.append(float(res.value))
         else:
             loss = arap.loss(xf, yf, Y, cfg.arap_weight)
             loss.backward()
             losses.append(float(loss))
-            if flow != 1.0:
-                Y.grad.mul_(flow)
-                if dC.grad is not None:
-                    dC.grad.mul_(flow)
+        if flow != 1.0:
+            Y.grad.mul_(flow)
+            if dC.grad is not None:
+                dC.grad.mul_(flow)
         if not (torch.isfinite(Y.grad).all() and (dC.grad is None or torch.isfinite(dC.grad).all())):
             raise FloatingPointError(f"stylize: non-finite gradient at iteration {it}")
         opt.step()
