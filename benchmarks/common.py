@@ -126,9 +126,20 @@ def render_frames(scene, reference, folder: Path, frames: int = 24, size: int = 
     return read_frames(folder)
 
 
-def style_scores(result, result_frames, style, style_frames, seed: int, fast: bool = False) -> dict:
-    """Every style metric of a result at one metric seed (patches, crops and directions all drawn
-    from it). ``fast`` leaves out the slow patch-matching metrics."""
+def texture_reference_frames(style, content, folder: Path, frames: int = 24, size: int = 256):
+    """The style's texture reference for results on ``content`` [V, H, W, 4] (as the workflow's
+    ``texture_reference`` rule writes it, then read back)."""
+    from wast3d.render import RenderConfig, read_frames, render_texture_reference
+
+    if not (Path(folder) / "render.json").exists():
+        render_texture_reference(style, content, folder, RenderConfig(frames=frames, size=size))
+    return read_frames(folder)
+
+
+def style_scores(result, result_frames, style, reference_frames, seed: int, fast: bool = False) -> dict:
+    """Every style metric of a result at one metric seed (patches, windows and directions all drawn
+    from it); ``reference_frames``: the style's texture reference. ``fast`` leaves out the slow
+    patch-matching metrics."""
     from wast3d.metrics import MetricsConfig, relief_w1, style_metrics
 
     m = MetricsConfig(seed=seed)
@@ -142,14 +153,12 @@ def style_scores(result, result_frames, style, style_frames, seed: int, fast: bo
                                           anisotropy(style.scales.double()).log10())}
     else:
         out = style_metrics(result, style, m)
-    out["texture_swd"] = texture_score(result_frames, style_frames, seed)
+    out["texture_swd"] = texture_score(result_frames, reference_frames, seed)
     return out
 
 
-def texture_score(result_frames, style_frames, seed: int) -> float:
-    """texture_swd as the evaluate stage computes it (the CLIP crops of both renders)."""
-    from wast3d.clip_eval import CropConfig, random_crops
+def texture_score(result_frames, reference_frames, seed: int) -> float:
+    """texture_swd as the evaluate stage computes it (result frames vs the style's texture reference)."""
     from wast3d.image_metrics import TextureConfig, texture_swd
 
-    cc = CropConfig(seed=seed)
-    return texture_swd(random_crops(result_frames, cc)[0], random_crops(style_frames, cc)[0], TextureConfig(seed=seed))
+    return texture_swd(result_frames, reference_frames, TextureConfig(seed=seed))

@@ -31,7 +31,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, PairRunner, demo_scene, render_frames, style_scores  # noqa: E402
+from common import OUT, PairRunner, demo_scene, render_frames, style_scores, texture_reference_frames  # noqa: E402
 
 
 def verdict(floor: float, neg: float, pos: float, spread: float) -> str:
@@ -66,9 +66,12 @@ def main() -> None:
         other = (other - oc0) * ((content.means.double() - cc0).norm(dim=1).max() / (other - oc0).norm(dim=1).max()) + cc0
         positive, _, _ = PairRunner(content, style).run(1, StylizeConfig(iterations=0), mode="footprint",
                                                         radius=a.radius)
-        fr = {n: render_frames(sc, ref, tmp / f"{spec}_{n}") for n, sc, ref in
-              (("style", style, style), ("floor", style_b, style_b), ("negative", content, content),
-               ("positive", positive, content))}
+        # texture: the style and its copy at the pixel scale of renders fitted to the content (the
+        # texture reference), the content and the collage in those renders
+        fr = {"style": texture_reference_frames(style, content, tmp / f"{spec}_style"),
+              "floor": texture_reference_frames(style_b, content, tmp / f"{spec}_floor"),
+              "negative": render_frames(content, content, tmp / f"{spec}_negative"),
+              "positive": render_frames(positive, content, tmp / f"{spec}_positive")}
         cases = {"floor": style_b, "negative": content, "positive": positive}
         vals: dict[str, dict[str, list]] = {}
         for seed in range(a.seeds):

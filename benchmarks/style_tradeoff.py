@@ -11,7 +11,7 @@ to the content) and scored:
   content_chamfer  result vs content surface, in content spacings (lower: the content's shape)
   relief_w1        local shape at the style's element scale vs the style scene (lower: more style)
   tilt_w1_deg      Gaussian orientation vs local surface, W1 in degrees, vs the style
-  texture_swd      Laplacian-pyramid patch SWD of the CLIP crops vs the style's renders
+  texture_swd      Laplacian-pyramid patch SWD of the result's frames vs the style's texture reference
   coverage         share of the content render's foreground the result covers (holes: < 1)
   seconds          selection + stylization + scale readjustment (2 threads)
 
@@ -20,14 +20,17 @@ selection, no optimization: the style's elements whole on the content's shape). 
 valid is benchmarks/metrics_validation.py's verdict. Rows are appended to
 results/benchmarks/style_tradeoff.csv as they finish (a run can be stopped and resumed; finished
 (pair, variant) rows are skipped); the plot results/benchmarks/style_tradeoff.png is redrawn at the end.
+Renders are kept under results/benchmarks/renders/style_tradeoff/ (``--renders``); ``--rescore``
+recomputes the image metric of every finished row from them (after a change of the image metric),
+without re-running any stylization.
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,7 +39,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, PairRunner, demo_scene, render_frames, texture_score  # noqa: E402
+from common import OUT, PairRunner, demo_scene, render_frames, texture_reference_frames, texture_score  # noqa: E402
 
 # base: the previous default (eq. 8 kNN selection with k = 3, Adam at lr 0.01, gamma 0.3)
 BASE = {"reg": 1.0, "select": {"mode": "knn", "k": 3},
@@ -114,15 +117,20 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--seeds", type=int, default=1, help="metric seeds per result (the spread is metrics_validation's)")
     ap.add_argument("--out", default=str(OUT / "style_tradeoff.csv"))
+    ap.add_argument("--renders", default=str(OUT / "renders" / "style_tradeoff"), help="folder of the kept renders")
+    ap.add_argument("--rescore", action="store_true", help="recompute texture_swd of the finished rows from the kept renders")
     a = ap.parse_args()
     torch.set_num_threads(2)
     out = Path(a.out)
+    tmp = Path(a.renders)
+    if a.rescore:
+        rescore(out, tmp, a.seeds)
+        return
     out.parent.mkdir(parents=True, exist_ok=True)
     done = set()
     if out.exists():
         old = pd.read_csv(out)
         done = set(zip(old.pair, old.variant))
-    tmp = Path(tempfile.mkdtemp(prefix="wast3d_tradeoff_"))
     for spec in a.pairs:
         cname, sname = spec.split(":")
         todo = [v for v in a.variants if (spec, v) not in done]
@@ -132,6 +140,7 @@ def main() -> None:
         content, style = demo_scene(cname), demo_scene(sname)
         h = mean_spacing(content.means)
         style_frames = render_frames(style, style, tmp / f"{spec}_style")
+        reference = texture_reference_frames(style, content, tmp / f"{spec}_texture_reference")
         content_frames = render_frames(content, content, tmp / f"{spec}_content")
         runners: dict[float, PairRunner] = {}
         sheet = {"style": style_frames[SHEET_FRAME, ..., :3].clone()}
@@ -148,6 +157,7 @@ def main() -> None:
                 st["sinkhorn"] = SinkhornConfig(**{**SINKHORN_DEFAULTS, **st.get("sinkhorn", {})})
                 result, secs, curves = runners[v["reg"]].run(v["select"].get("k", 1), StylizeConfig(**st), v["bound"],
                                                             mode=v["select"]["mode"], radius=v["select"].get("radius", 1.0))
+            shutil.rmtree(tmp / f"{spec}_{name}", ignore_errors=True)  # a re-run variant: never an old render
             frames = render_frames(result, content, tmp / f"{spec}_{name}")
             sheet[name] = frames[SHEET_FRAME, ..., :3].clone()
             row = {"pair": spec, "variant": name, "seconds": secs, "gaussians": len(result),
@@ -157,7 +167,7 @@ def main() -> None:
                 m = MetricsConfig(seed=seed)
                 vals = {"relief_w1": relief_w1(result.means, style.means, m),
                         "tilt_w1_deg": wasserstein_1d(tilt_degrees(result, m.normal_k), tilt_degrees(style, m.normal_k)),
-                        "texture_swd": texture_score(frames, style_frames, seed)}
+                        "texture_swd": texture_score(frames, reference, seed)}
                 for k, val in vals.items():
                     row[k] = row.get(k, 0.0) + val / a.seeds
             row["negative_losses"] = int(sum(1 for c in curves if c and min(c) < -1e-6 * abs(c[0])))
@@ -191,6 +201,29 @@ def contact_sheet(frames: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rescore(out: Path, renders: Path, seeds: int) -> None:
+    """Recompute ``texture_swd`` of every row of ``out`` from the renders kept under ``renders``."""
+    from wast3d.render import read_frames
+
+    df = pd.read_csv(out)
+    refs = {}
+    for i, r in df.iterrows():
+        folder = renders / f"{r.pair}_{r.variant}"
+        if not (folder / "frames").is_dir():
+            print(f"{r.pair} {r.variant}: no kept render under {folder}, texture_swd left as it was")
+            continue
+        if r.pair not in refs:
+            cname, sname = r.pair.split(":")
+            refs[r.pair] = texture_reference_frames(demo_scene(sname), demo_scene(cname),
+                                                    renders / f"{r.pair}_texture_reference")
+        frames = read_frames(folder)
+        df.loc[i, "texture_swd"] = float(np.mean([texture_score(frames, refs[r.pair], sd) for sd in range(seeds)]))
+        print(f"{r.pair} {r.variant:18s} texture_swd {df.loc[i, 'texture_swd']:.4g}", flush=True)
+    df.to_csv(out, index=False)
+    plot(df, out.with_suffix(".png"))
+    print(f"rescored {out}")
 
 
 def plot(df: pd.DataFrame, path: Path) -> None:

@@ -302,7 +302,7 @@ def test_render_turntable_artifacts_and_sheet(tmp_path):
 
 
 def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
-    from wast3d.pipeline import run_evaluate, run_render
+    from wast3d.pipeline import run_evaluate, run_render, run_texture_reference
     from wast3d.ply import write_ply
 
     content, style = make_scene("content", "torus", 800), make_scene("style", "pebbles", 1500)
@@ -311,17 +311,18 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
     rp = {"frames": 3, "size": 48, "key_views": 1}
     run_render(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "rc", rp, progress=False)
     run_render(tmp_path / "s.ply", tmp_path / "s.ply", tmp_path / "rs", rp, progress=False)
+    run_texture_reference(tmp_path / "s.ply", tmp_path / "c.ply", tmp_path / "rx", rp, progress=False)
     small = {"patches": 8, "candidates": 16, "patch_size": 8, "rotations": 2, "colour_points": 128}
-    base = {"metrics": small, "crops": {"count": 4, "size": 16}}
+    base = {"metrics": small, "crops": {"count": 4, "size": 16}, "texture": {"windows": 64, "levels": 1}}
     run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "rc", tmp_path / "none.json", base)
+                 tmp_path / "rx", tmp_path / "rc", tmp_path / "none.json", base)
     ev = json.loads((tmp_path / "none.json").read_text())
     assert ev["clip_similarity"] is None and ev["clip_status"].startswith("not computed: no clip.checkpoint")
     assert ev["content_chamfer"] == 0 and ev["style_patch_chamfer"] > 0
     assert ev["coverage"] == 1.0 and ev["texture_swd"] > 0 and ev["relief_w1"] > 0
     clip = {"model": "wast3d-tiny-clip", "checkpoint": str(tiny_clip[1]), "model_config": str(tiny_clip[0])}
     run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "rc", tmp_path / "clip.json", {**base, "clip": clip})
+                 tmp_path / "rx", tmp_path / "rc", tmp_path / "clip.json", {**base, "clip": clip})
     ev = json.loads((tmp_path / "clip.json").read_text())
     assert ev["clip_status"] == "computed" and -100 <= ev["clip_similarity"] <= 100
     # a collapsed result (what entropic OT without debiasing does at a large blur): no crop has enough
@@ -330,14 +331,14 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
     write_ply(tmp_path / "tiny.ply", content.transform(translation=c0 - 0.02 * c0, scale=0.02))
     run_render(tmp_path / "tiny.ply", tmp_path / "c.ply", tmp_path / "rt", rp, progress=False)
     run_evaluate(tmp_path / "tiny.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rt", tmp_path / "rs",
-                 tmp_path / "rc", tmp_path / "tiny.json", base)
+                 tmp_path / "rx", tmp_path / "rc", tmp_path / "tiny.json", base)
     ev = json.loads((tmp_path / "tiny.json").read_text())
     assert ev["coverage"] < 0.1 and ev["texture_swd"] is None and ev["crops"]["result"] == 0
-    assert "no crop with mean alpha" in ev["texture_status"] and ev["clip_status"].startswith("not computed")
+    assert "no 5x5 window inside the foreground" in ev["texture_status"] and "no crop with mean alpha" in ev["clip_status"]
     assert ev["content_chamfer"] > 1
     with pytest.raises(ValueError, match="evaluate.metrics: unknown parameter.*patchez"):
         run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc",
-                     tmp_path / "rs", tmp_path / "rc", tmp_path / "x.json", {"metrics": {"patchez": 3}})
+                     tmp_path / "rs", tmp_path / "rx", tmp_path / "rc", tmp_path / "x.json", {"metrics": {"patchez": 3}})
     assert not (tmp_path / "x.json").exists()
 
 
@@ -390,7 +391,7 @@ def test_evaluate_names_the_file_of_an_empty_result(tmp_path):
     write_ply(tmp_path / "empty.ply", GaussianScene.empty())
     write_ply(tmp_path / "s.ply", random_scene(50))
     rc = main(["evaluate", str(tmp_path / "empty.ply"), str(tmp_path / "s.ply"), str(tmp_path / "s.ply"),
-               str(tmp_path), str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
+               str(tmp_path), str(tmp_path), str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
     assert rc == 2 and not (tmp_path / "out.json").exists()
 
 
@@ -420,24 +421,52 @@ def test_relief_w1_zero_for_identical_and_orders_floor_below_a_flat_sheet():
     assert 0 < 5 * floor < negative, (floor, negative)
 
 
-def test_texture_swd_zero_for_identical_and_sees_a_flat_image():
+def test_texture_swd_zero_for_identical_sees_a_flat_image_and_ignores_silhouettes():
     from wast3d.image_metrics import TextureConfig, texture_swd
 
     g = torch.Generator().manual_seed(0)
-    rough = torch.rand(16, 32, 32, 3, generator=g)
-    rough2 = torch.rand(16, 32, 32, 3, generator=g)
-    flat = torch.full((16, 32, 32, 3), 0.5) + 0.01 * torch.rand(16, 32, 32, 3, generator=g)
-    cfg = TextureConfig(per_crop=32, directions=32)
+    opaque = lambda rgb: torch.cat([rgb, torch.ones(*rgb.shape[:-1], 1)], -1)  # noqa: E731
+    rough = opaque(torch.rand(4, 48, 48, 3, generator=g))
+    rough2 = opaque(torch.rand(4, 48, 48, 3, generator=g))
+    flat = opaque(torch.full((4, 48, 48, 3), 0.3) + 0.01 * torch.rand(4, 48, 48, 3, generator=g))
+    cfg = TextureConfig(windows=256, directions=32)
     assert texture_swd(rough, rough, cfg) == 0
     assert 5 * texture_swd(rough2, rough, cfg) < texture_swd(flat, rough, cfg)
-    with pytest.raises(ValueError, match="need crops"):
-        texture_swd(rough[:0], rough, cfg)
+    # the same flat surface as a disc on the white background: its outline is no texture
+    yy, xx = torch.meshgrid(torch.arange(48.0), torch.arange(48.0), indexing="ij")
+    inside = (((yy - 24) ** 2 + (xx - 24) ** 2) < 18 ** 2).float()
+    disc, flat2 = flat.clone(), opaque(torch.full((4, 48, 48, 3), 0.3) + 0.01 * torch.rand(4, 48, 48, 3, generator=g))
+    disc[..., 3] = inside
+    painted = opaque(disc[..., :3] * inside[..., None] + (1 - inside[..., None]))  # the outline baked into an opaque image
+    assert texture_swd(disc, flat, cfg) < 1.5 * texture_swd(flat2, flat, cfg) < 0.2 * texture_swd(painted, flat, cfg)
+    # a scattered result: no window inside the foreground -> a clear error naming the level
+    dots = rough.clone()
+    dots[..., 3] = ((yy % 4 == 0) & (xx % 4 == 0)).float()
+    with pytest.raises(ValueError, match="result frames have no 5x5 window.*level 0"):
+        texture_swd(dots, rough, cfg)
+    with pytest.raises(ValueError, match="min_alpha"):
+        TextureConfig(min_alpha=0.0)
 
 
-def test_valid_3d_metrics_order_floor_positive_negative():
-    """What benchmarks/metrics_validation.py checks at demo size, on small scenes: for relief_w1 and
-    aniso_w1, the style's other seed (floor) < the collage of the style's elements on the content
-    (positive) < the plain content (negative)."""
+def test_texture_reference_puts_style_elements_at_the_results_pixel_scale():
+    """z = (R_style h_content) / (R_content h_style): 1 for a scaled copy; the zoom applied to the focal."""
+    from wast3d.render import RenderConfig, texture_reference_cameras, turntable_cameras
+
+    content, style = make_scene("content", "torus", 800), make_scene("style", "pebbles", 1500)
+    cfg = RenderConfig(frames=2, size=32, key_views=1)
+    cams, z = texture_reference_cameras(content.transform(scale=3.0), content, cfg)
+    assert z == pytest.approx(1.0, rel=1e-4)
+    cams, z = texture_reference_cameras(style, content, cfg)
+    plain = turntable_cameras(style, cfg)
+    assert cams[0].fx == pytest.approx(z * plain[0].fx) and torch.equal(cams[0].world_to_cam, plain[0].world_to_cam)
+    dense = make_scene("style", "pebbles", 6000)  # the same patch, half the spacing: elements 2x larger vs a spacing
+    assert texture_reference_cameras(dense, content, cfg)[1] == pytest.approx(2 * z, rel=0.15)
+
+
+def test_valid_metrics_order_floor_positive_negative(tmp_path):
+    """What benchmarks/metrics_validation.py checks at demo size, on small scenes: for relief_w1,
+    aniso_w1 and texture_swd, the style's other seed (floor) < the collage of the style's elements on
+    the content (positive) < the plain content (negative)."""
     from wast3d.clustering import ClusterConfig, kmeans
     from wast3d.gaussians import anisotropy
     from wast3d.metrics import MetricsConfig, relief_w1, wasserstein_1d
@@ -459,6 +488,21 @@ def test_valid_3d_metrics_order_floor_positive_negative():
     for name, score in (("relief_w1", lambda sc: relief_w1(sc.means, style.means, cfg)), ("aniso_w1", aniso)):
         floor, positive, negative = score(other), score(collage), score(content)
         assert floor < positive < negative, (name, floor, positive, negative)
+    # the image metric: result renders (cameras fitted to the content) against the style's texture reference
+    from wast3d.image_metrics import TextureConfig, texture_swd
+    from wast3d.render import RenderConfig, read_frames, render_texture_reference, render_turntable
+
+    rc = RenderConfig(frames=8, size=256, key_views=1)
+    fr = {}
+    for name, sc in (("style", style), ("floor", other)):
+        render_texture_reference(sc, content, tmp_path / name, rc)
+        fr[name] = read_frames(tmp_path / name)
+    for name, sc in (("positive", collage), ("negative", content)):
+        render_turntable(sc, content, tmp_path / name, rc)
+        fr[name] = read_frames(tmp_path / name)
+    tc = TextureConfig(windows=1024, levels=1)  # a 4,000-Gaussian ant is mostly too thin for level 1
+    floor, positive, negative = (texture_swd(fr[n], fr["style"], tc) for n in ("floor", "positive", "negative"))
+    assert floor < positive < negative, (floor, positive, negative)  # (the margins: metrics_validation, demo size)
 
 
 def test_coverage_counts_holes_where_the_content_is():

@@ -181,7 +181,7 @@ def test_caching_reruns_only_what_a_change_affects(tiny_run):
     assert jobs(snake(tiny_run, "-n", config=cfg)) == {"evaluate": 4, "table1": 1, "all": 1}
     cfg = copy.deepcopy(base)
     cfg["evaluation"]["render"]["frames"] = 5
-    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {"render_method", "render_scene"} | downstream
+    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {"render_method", "render_scene", "texture_reference"} | downstream
     snake(tiny_run, "-n", config=copy.deepcopy(base))  # restore the config file
 
 

@@ -222,10 +222,14 @@ stage_command("rescale", "stage 6: readjust scales from the change of mean neare
 
 stage_command("render", "stage 7: turntable (PNG frames + GIF), key views and close-up with depth and normals",
               ("scene", "reference", "out_dir"), "run_render", progress=True)
+stage_command("texture-reference", "stage 7: the style rendered at the pixel scale its elements have on the content's "
+              "renders (the reference of texture_swd)", ("style", "content", "out_dir"), "run_texture_reference",
+              progress=True)
 stage_command("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
               ("content", "style", "out_ply"), "run_colour_transfer")
 stage_command("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result",
-              ("result", "content", "style", "result_render", "style_render", "content_render", "out_json"),
+              ("result", "content", "style", "result_render", "style_render", "texture_reference", "content_render",
+               "out_json"),
               "run_evaluate")
 
 

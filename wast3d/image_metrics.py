@@ -1,20 +1,28 @@
-"""Stage 8, weights-free image metrics on renders: texture statistics of crops and coverage.
+"""Stage 8, weights-free image metrics on renders: texture statistics and coverage.
 
-``texture_swd`` (Karras et al. 2018, "Progressive growing of GANs", sliced Wasserstein distance of
-Laplacian-pyramid patch descriptors), on the same crops as CLIP (:func:`wast3d.clip_eval.random_crops`):
+``texture_swd`` (Karras et al. 2018, "Progressive growing of GANs": sliced Wasserstein distance of
+Laplacian-pyramid patch descriptors), between the turntable frames of a result and a *texture
+reference* render of the style (:func:`wast3d.render.texture_reference_cameras`: the style's elements
+at the pixel size they have in the result's render, since the registration maps one content spacing
+onto one style spacing):
 
-- each crop [s, s, 3] is decomposed into a Laplacian pyramid: ``L_l = G_l - up(G_{l+1})`` with
-  ``G_0`` the crop and ``G_{l+1}`` its 2x2 average-pooled copy; only the band-pass levels
-  ``l = 0 .. levels-1`` are used, never the low-pass residual, so the metric sees texture (edges,
-  relief shading, the scale of elements) and not the mean colour (that is ``colour_sinkhorn``'s job);
-- descriptors: ``per_crop`` random ``patch x patch`` windows of every level, flattened ([3 patch^2]);
+- each frame (composited on the background) is decomposed into a Laplacian pyramid
+  ``L_l = G_l - up(G_{l+1})`` with ``G_0`` the frame and ``G_{l+1}`` its 2x2 average-pooled copy; only
+  the band-pass levels ``l = 0 .. levels-1`` are used, never the low-pass residual, so the metric sees
+  texture (edges, relief shading, the size of elements) and not the mean colour;
+- descriptors: ``windows`` ``patch x patch`` windows of each level ([3 patch^2]), drawn uniformly among
+  the windows lying *inside the foreground*: the alpha of level l (``alpha`` 2^l-average-pooled) is
+  ``>= min_alpha`` over the window and a 2-pixel margin (the band-pass reads that far through the
+  upsampling). Silhouette edges against the background are thereby left out: they are the content's
+  outline, not texture, and would otherwise dominate a thin shape's descriptors;
 - both sets of a level are divided by the per-channel standard deviation of the *style* set's
   descriptors (one fixed unit, so that a flat, low-contrast result is far from a rough style);
 - SWD of a level: the mean over ``directions`` random unit directions of the exact 1-D W1 between
-  the projections of the two sets (equal sizes, so W1 is the mean absolute difference of the sorted
+  the projections of the two sets (equal sizes: the mean absolute difference of the sorted
   projections); ``texture_swd`` is the mean over levels.
 
-Deterministic given ``seed``; identical crop sets give exactly 0.
+Deterministic given ``seed``; identical frame sets give exactly 0. Raises ``ValueError`` (naming the
+level) when a side has no window inside its foreground at some level (a scattered or collapsed result).
 
 ``coverage``: the share of the reference render's foreground pixels (alpha > 0.5) where the result's
 alpha is also > 0.5, over the same views: 1 = no holes where the content is.
@@ -30,19 +38,28 @@ import torch.nn.functional as F
 
 @dataclass
 class TextureConfig:
-    levels: int = 3
-    patch: int = 7
-    per_crop: int = 64
+    """levels: band-pass levels; patch: window side (px of its level); windows: descriptors per level and
+    side; directions: random projections; min_alpha: foreground threshold of a window (and its margin)."""
+
+    levels: int = 2
+    patch: int = 5
+    windows: int = 2048
     directions: int = 128
+    min_alpha: float = 0.99
     seed: int = 0
 
     def __post_init__(self):
-        if self.levels < 1 or self.patch < 1 or self.per_crop < 1 or self.directions < 1:
-            raise ValueError("texture: need levels, patch, per_crop, directions >= 1")
+        if self.levels < 1 or self.patch < 1 or self.windows < 1 or self.directions < 1:
+            raise ValueError("texture: need levels, patch, windows, directions >= 1")
+        if not 0.0 < self.min_alpha <= 1.0:
+            raise ValueError(f"texture: min_alpha must be in (0, 1], got {self.min_alpha}")
+
+
+MARGIN = 2  # pixels of a level around a window that must be foreground too (the upsampling's reach)
 
 
 def laplacian_pyramid(img: torch.Tensor, levels: int) -> list[torch.Tensor]:
-    """img: [n, 3, H, W] -> ``levels`` band-pass images [n, 3, H / 2^l, W / 2^l] (l = 0 .. levels-1)."""
+    """img: [n, c, H, W] -> ``levels`` band-pass images [n, c, H / 2^l, W / 2^l] (l = 0 .. levels-1)."""
     out, g = [], img
     for _ in range(levels):
         if min(g.shape[-2:]) < 2:
@@ -54,16 +71,35 @@ def laplacian_pyramid(img: torch.Tensor, levels: int) -> list[torch.Tensor]:
     return out
 
 
-def patch_descriptors(level: torch.Tensor, patch: int, per_crop: int, g: torch.Generator) -> torch.Tensor:
-    """``per_crop`` random ``patch x patch`` windows of each image of level [n, 3, h, w] -> [n * per_crop, 3 patch^2]."""
-    n, c, h, w = level.shape
-    p = min(patch, h, w)
-    win = level.unfold(2, p, 1).unfold(3, p, 1)  # [n, c, h-p+1, w-p+1, p, p]
-    H, W = win.shape[2], win.shape[3]
-    iy = torch.randint(0, H, (n, per_crop), generator=g)
-    ix = torch.randint(0, W, (n, per_crop), generator=g)
-    b = torch.arange(n)[:, None].expand(-1, per_crop)
-    return win.permute(0, 2, 3, 1, 4, 5)[b, iy, ix].reshape(n * per_crop, -1)
+def interior_windows(alpha: torch.Tensor, patch: int, min_alpha: float) -> torch.Tensor:
+    """alpha: [V, h, w] -> [n, 3] (view, y0, x0) of every ``patch x patch`` window whose alpha, and that
+    of a ``MARGIN``-pixel border around it, is >= ``min_alpha`` (outside the image counts as 0)."""
+    a = F.pad(alpha[:, None], (MARGIN,) * 4, value=0.0)
+    low = -F.max_pool2d(-a, patch + 2 * MARGIN, stride=1)  # [V, 1, h - patch + 1, w - patch + 1]
+    return (low[:, 0] >= min_alpha).nonzero()
+
+
+def window_descriptors(frames: torch.Tensor, cfg: TextureConfig, background=(1.0, 1.0, 1.0)) -> list[torch.Tensor | None]:
+    """frames: [V, H, W, 4] straight alpha in [0, 1] -> per band-pass level, [cfg.windows, 3 patch^2]
+    descriptors of interior windows (drawn with ``cfg.seed``), or None where the level has none."""
+    bg = torch.as_tensor(background, dtype=torch.float64)
+    f = frames.double()
+    rgb = f[..., :3] * f[..., 3:] + (1 - f[..., 3:]) * bg
+    pyramid = laplacian_pyramid(rgb.permute(0, 3, 1, 2), cfg.levels)
+    alpha = f[..., 3][:, None]
+    g = torch.Generator().manual_seed(cfg.seed)
+    out: list[torch.Tensor | None] = []
+    for lvl, band in enumerate(pyramid):
+        a = alpha if lvl == 0 else F.avg_pool2d(alpha, 2 ** lvl, ceil_mode=True)
+        p = cfg.patch
+        ok = interior_windows(a[:, 0], p, cfg.min_alpha) if min(band.shape[-2:]) >= p else torch.zeros(0, 3)
+        if len(ok) == 0:
+            out.append(None)
+            continue
+        pick = ok[torch.randint(0, len(ok), (cfg.windows,), generator=g)]
+        win = band.unfold(2, p, 1).unfold(3, p, 1).permute(0, 2, 3, 1, 4, 5)  # [V, h-p+1, w-p+1, 3, p, p]
+        out.append(win[pick[:, 0], pick[:, 1], pick[:, 2]].reshape(cfg.windows, -1))
+    return out
 
 
 def sliced_w1(a: torch.Tensor, b: torch.Tensor, directions: int, g: torch.Generator) -> float:
@@ -79,22 +115,24 @@ def sliced_w1(a: torch.Tensor, b: torch.Tensor, directions: int, g: torch.Genera
     return float((pa - pb).abs().mean())
 
 
-def texture_swd(result_crops: torch.Tensor, style_crops: torch.Tensor, cfg: TextureConfig) -> float:
-    """Crops [n, s, s, 3] (values in [0, 1]) of result and style -> the texture SWD of the module docstring."""
-    if len(result_crops) == 0 or len(style_crops) == 0:
-        raise ValueError(f"texture: need crops on both sides (result {len(result_crops)}, style {len(style_crops)})")
-    ra = laplacian_pyramid(result_crops.double().permute(0, 3, 1, 2), cfg.levels)
-    sa = laplacian_pyramid(style_crops.double().permute(0, 3, 1, 2), cfg.levels)
+def texture_swd(result_frames: torch.Tensor, style_frames: torch.Tensor, cfg: TextureConfig,
+                background=(1.0, 1.0, 1.0)) -> float:
+    """Frames [V, H, W, 4] (straight alpha in [0, 1]) of the result and of the style's texture reference
+    -> the texture SWD of the module docstring."""
+    da = window_descriptors(result_frames, cfg, background)
+    db = window_descriptors(style_frames, cfg, background)
     scores = []
-    for lr, ls in zip(ra, sa):
-        g = torch.Generator().manual_seed(cfg.seed)  # same draws for both sides: identical sets -> 0
-        da = patch_descriptors(lr, cfg.patch, cfg.per_crop, g)
-        g = torch.Generator().manual_seed(cfg.seed)
-        db = patch_descriptors(ls, cfg.patch, cfg.per_crop, g)
-        std = db.reshape(len(db), 3, -1).transpose(0, 1).reshape(3, -1).std(1).clamp_min(1e-6)
-        unit = std.repeat_interleave(db.shape[1] // 3)
+    for lvl, (a, b) in enumerate(zip(da, db)):
+        if a is None or b is None:
+            side = "result" if a is None else "style reference"
+            raise ValueError(f"texture: the {side} frames have no {cfg.patch}x{cfg.patch} window inside the "
+                             f"foreground (alpha >= {cfg.min_alpha}) at pyramid level {lvl}")
+        std = b.reshape(len(b), 3, -1).transpose(0, 1).reshape(3, -1).std(1).clamp_min(1e-6)
+        unit = std.repeat_interleave(b.shape[1] // 3)
         g = torch.Generator().manual_seed(cfg.seed + 1)
-        scores.append(sliced_w1(da / unit, db / unit, cfg.directions, g))
+        scores.append(sliced_w1(a / unit, b / unit, cfg.directions, g))
+    if len(da) != cfg.levels or len(db) != cfg.levels:
+        raise ValueError(f"texture: frames too small for {cfg.levels} pyramid levels")
     return float(sum(scores) / len(scores))
 
 

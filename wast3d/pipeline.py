@@ -202,6 +202,17 @@ def run_render(scene_ply: Path, reference_ply: Path, out_dir: Path, params: dict
              info["fragment_pixel"])
 
 
+def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, params: dict, progress: bool = True) -> None:
+    """The style's frames at the pixel scale its elements have on renders fitted to the content
+    (:func:`~wast3d.render.texture_reference_cameras`); ``params``: the render block."""
+    from .render import RenderConfig, render_texture_reference
+
+    cfg = make_config(RenderConfig, params, "render")
+    info = render_texture_reference(read_ply(style_ply), read_ply(content_ply), out_dir, cfg, progress)
+    log.info("texture reference: %s at zoom %.3f (cameras fitted to it, spacing matched to %s) -> %s", style_ply,
+             info["zoom"], content_ply, out_dir)
+
+
 def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, params: dict) -> None:
     """Baseline: the content with its colours mapped to the style's by entropic OT."""
     import time
@@ -219,12 +230,13 @@ def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, param
 
 
 def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_render: Path, style_render: Path,
-                 content_render: Path, out_json: Path, params: dict) -> None:
+                 texture_reference: Path, content_render: Path, out_json: Path, params: dict) -> None:
     """Weights-free metrics, texture SWD, coverage and CLIP crop similarity of one result; ``params``:
     ``metrics``, ``texture``, ``crops`` and ``clip`` blocks (:class:`~wast3d.metrics.MetricsConfig`,
     :class:`~wast3d.image_metrics.TextureConfig`, :class:`~wast3d.clip_eval.CropConfig`,
-    :class:`~wast3d.clip_eval.ClipConfig`). ``content_render``: the unstylized content's render with
-    the same cameras (coverage)."""
+    :class:`~wast3d.clip_eval.ClipConfig`). ``style_render``: the style's turntable (CLIP crops);
+    ``texture_reference``: the style at the result's pixel scale (:func:`run_texture_reference`, texture
+    SWD); ``content_render``: the unstylized content's render with the same cameras (coverage)."""
     from .clip_eval import ClipConfig, ClipUnavailable, CropConfig, clip_similarity, load_clip, random_crops
     from .image_metrics import TextureConfig, coverage, texture_swd
     from .metrics import MetricsConfig, weights_free_metrics
@@ -251,24 +263,24 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         raise ValueError(f"{result_render}: frames {list(frames.shape)} differ from the content render "
                          f"{content_render} {list(reference.shape)}; render both with the same settings")
     out["coverage"] = coverage(frames[..., 3], reference[..., 3])
+    try:
+        out["texture_swd"] = texture_swd(frames, read_frames(texture_reference), tcfg)
+        out["texture_status"] = "computed"
+    except ValueError as e:  # a collapsed or scattered result (e.g. entropic OT without debiasing) is a
+        # result, not bad input: it gets no texture metric, and the table says why
+        out.update({"texture_swd": None, "texture_status": f"not computed: {result_render}: {e}"})
+        log.warning("evaluate: texture SWD not computed: %s", e)
     crops_b, _ = random_crops(read_frames(style_render), ccfg)
     try:
         crops_a, _ = random_crops(frames, ccfg)
-    except ValueError as e:  # a collapsed or scattered result (e.g. entropic OT without debiasing) is a
-        # result, not bad input: it gets no crop metrics and a low coverage, and the table says why
+    except ValueError as e:
         crops_a = None
         why = f"not computed: {result_render}: no crop with mean alpha >= {ccfg.min_alpha} ({e}; coverage {out['coverage']:.3f})"
-        log.warning("evaluate: texture SWD and CLIP similarity %s", why)
-        out.update({"texture_swd": None, "texture_status": why, "clip_status": why})
+        log.warning("evaluate: CLIP similarity %s", why)
+        out["clip_status"] = why
     out["crops"] = {"result": 0 if crops_a is None else len(crops_a), "style": len(crops_b), "size": ccfg.size,
                     "seed": ccfg.seed, "min_alpha": ccfg.min_alpha}
     if crops_a is not None:
-        try:
-            out["texture_swd"] = texture_swd(crops_a, crops_b, tcfg)
-            out["texture_status"] = "computed"
-        except ValueError as e:
-            out.update({"texture_swd": None, "texture_status": f"not computed: {e}"})
-            log.warning("evaluate: texture SWD not computed: %s", e)
         try:
             model = load_clip(kcfg)
         except ClipUnavailable as e:

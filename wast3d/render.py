@@ -6,7 +6,7 @@ Pure helpers take and return tensors; the ``save_*``/``export_*`` functions are 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -219,6 +219,12 @@ def render_maps(scene: GaussianScene, cam: Camera, cfg: RenderConfig) -> dict[st
 
 
 @torch.no_grad()
+def camera_dicts(cams: list[Camera]) -> list[dict]:
+    """Cameras as JSON-ready dicts (render.json)."""
+    return [{"world_to_cam": c.world_to_cam.tolist(), "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
+             "width": c.width, "height": c.height} for c in cams]
+
+
 def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
                      progress: bool = False) -> dict:
     """Write the turntable and close-up of ``scene`` (cameras from ``reference``) under ``out_dir``:
@@ -247,10 +253,7 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
             save_png(out_dir / f"key_{k:02d}_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
         else:
             m = rasterize(scene, cam, background=cfg.background)
-        a = m["alpha"].clamp(0, 1)
-        bg = torch.as_tensor(cfg.background, dtype=m["rgb"].dtype)
-        straight = ((m["rgb"] - (1 - a[..., None]) * bg) / a[..., None].clamp_min(1e-6)).clamp(0, 1)
-        save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(torch.cat([straight, a[..., None]], -1)))
+        save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
         gif.append(to_uint8(m["rgb"]))
     with atomic_path(out_dir / "turntable.gif") as tmp:
         iio.imwrite(tmp, np.stack(gif), extension=".gif", duration=1000.0 / cfg.fps, loop=0)
@@ -261,8 +264,54 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
     save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
     info = {"frames": cfg.frames, "key_frames": keys, "fragment_pixel": list(pixel), "depth_range": [near, far],
             "normals": cfg.normals, "gaussians": len(scene), "config": asdict(cfg),
-            "cameras": [{"world_to_cam": c.world_to_cam.tolist(), "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
-                         "width": c.width, "height": c.height} for c in cams + [cu]]}
+            "cameras": camera_dicts(cams + [cu])}
+    write_json(out_dir / "render.json", info)
+    return info
+
+
+def straight_rgba(m: dict, background) -> torch.Tensor:
+    """A render composited on ``background`` (``m["rgb"]`` [H, W, 3], ``m["alpha"]`` [H, W]) -> [H, W, 4]
+    straight (un-premultiplied) RGBA, as the frames are stored."""
+    a = m["alpha"].clamp(0, 1)
+    bg = torch.as_tensor(background, dtype=m["rgb"].dtype)
+    straight = ((m["rgb"] - (1 - a[..., None]) * bg) / a[..., None].clamp_min(1e-6)).clamp(0, 1)
+    return torch.cat([straight, a[..., None]], -1)
+
+
+def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg: RenderConfig) -> tuple[list[Camera], float]:
+    """Cameras for the style's *texture reference* (``texture_swd``): the style's turntable, zoomed by
+
+        z = (R_style * h_content) / (R_content * h_style)
+
+    (R: :func:`scene_bounds` radius, h: mean nearest-neighbour spacing), so that one style spacing covers
+    as many pixels as one content spacing does in the turntable fitted to the content, in which every
+    result of the pair is rendered. Registration maps a content spacing onto a style spacing (its
+    default scale s0), so the style's elements then have the pixel size they have on a result.
+    Returns (cameras, z). A registration scale other than s0 puts smaller or larger elements on the
+    result; the reference stays at s0 (what the method is meant to reproduce)."""
+    from .registration import mean_spacing
+
+    _, rs = scene_bounds(style)
+    _, rc = scene_bounds(content)
+    z = (rs * mean_spacing(content.means)) / (rc * mean_spacing(style.means))
+    cams = [replace(c, fx=c.fx * z, fy=c.fy * z) for c in turntable_cameras(style, cfg)]
+    return cams, z
+
+
+def render_texture_reference(style: GaussianScene, content: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
+                             progress: bool = False) -> dict:
+    """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`
+    and ``render.json`` (cameras, zoom) under ``out_dir``."""
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    (out_dir / "frames").mkdir(parents=True, exist_ok=True)
+    cams, z = texture_reference_cameras(style, content, cfg)
+    for i, cam in enumerate(tqdm(cams, desc="texture reference", disable=not progress)):
+        m = rasterize(style, cam, background=cfg.background)
+        save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
+    info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "config": asdict(cfg),
+            "cameras": camera_dicts(cams)}
     write_json(out_dir / "render.json", info)
     return info
 

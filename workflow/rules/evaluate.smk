@@ -41,6 +41,25 @@ rule render_scene:
         "{params.exe} render {input.ply} {input.ply} {output} --no-progress --params '{params.cfg}' 2> {log}"
 
 
+rule texture_reference:
+    input:
+        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        content=lambda w: content_points(w.content),
+    output:
+        directory(f"{RESULTS}/render/texture_reference/{{content}}__{{style}}"),
+    params:
+        exe=WAST3D,
+        cfg=stage_json(EVALUATION.get("render", {})),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/render/texture_reference_{{content}}__{{style}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/texture_reference_{{content}}__{{style}}.tsv"
+    shell:
+        "{params.exe} texture-reference {input.style} {input.content} {output} --no-progress --params '{params.cfg}' 2> {log}"
+
+
 rule colour_transfer:
     input:
         content=lambda w: content_points(w.content),
@@ -68,6 +87,7 @@ rule evaluate:
         style=f"{RESULTS}/scenes/{{style}}/scene.ply",
         result_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}",
         style_render=f"{RESULTS}/render/scenes/{{style}}",
+        texture_reference=f"{RESULTS}/render/texture_reference/{{content}}__{{style}}",
         content_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
         clip=clip_inputs(),
     output:
@@ -83,7 +103,7 @@ rule evaluate:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
         "{params.exe} evaluate {input.result} {input.content} {input.style} {input.result_render} "
-        "{input.style_render} {input.content_render} {output} --params '{params.cfg}' 2> {log}"
+        "{input.style_render} {input.texture_reference} {input.content_render} {output} --params '{params.cfg}' 2> {log}"
 
 
 rule comparison_sheet:
