@@ -15,6 +15,11 @@ and the content metric (content_chamfer, in content spacings) for
 each at ``--seeds`` metric seeds (patches, crops and directions; the jitter for the content floor).
 spread = the largest standard deviation over seeds among the three cases. Verdict: **valid** when
 negative - floor >= 10 x spread and the positive control is closer to the floor than to the negative.
+The content_chamfer rows also give ``style_relief``: the Chamfer distance, in style spacings, between
+the style patch and its own flat base (a plane through it, sampled at the style's spacing, at the
+offset that minimizes it): what a result scores that carries the style's relief exactly on a flat
+content at the style's density, i.e. the part of content_chamfer that is the style's relief, not a
+departure from the content's shape.
 Writes results/benchmarks/metrics_validation.{csv,png}. ``--full`` adds the patch-matching metrics and
 colour Sinkhorn (slow: seconds per call).
 """
@@ -40,6 +45,29 @@ def verdict(floor: float, neg: float, pos: float, spread: float) -> str:
     if abs(pos - floor) >= abs(neg - pos):
         return "invalid: positive not closer to the floor than to the negative"
     return "valid"
+
+
+def style_relief_chamfer(points: torch.Tensor, margin: float = 0.1, offsets: int = 21) -> float:
+    """Chamfer between a planar style patch [N, 3] and its flat base, in the patch's mean spacing: the
+    base is the least-squares plane of the points, sampled on a grid at that spacing over the patch's
+    extent shrunk by ``margin`` on each side (edges left out on both sides), at the best of ``offsets``
+    heights (the 0-100 % quantiles of the points' heights)."""
+    from wast3d.geometry import knn_mean_dist
+    from wast3d.metrics import chamfer
+
+    p = points.double()
+    h = float(knn_mean_dist(p, 1).mean())
+    c = p - p.mean(0)
+    frame = torch.linalg.svd(c, full_matrices=False).Vh  # rows: in-plane u, v, then the normal
+    q = c @ frame.T
+    lo, hi = q.min(0).values, q.max(0).values
+    m = margin * (hi - lo)
+    inner = q[((q[:, :2] > lo[:2] + m[:2]) & (q[:, :2] < hi[:2] - m[:2])).all(1)]
+    u = torch.arange(float(lo[0] + m[0]), float(hi[0] - m[0]), h, dtype=torch.float64)
+    v = torch.arange(float(lo[1] + m[1]), float(hi[1] - m[1]), h, dtype=torch.float64)
+    gu, gv = (g.flatten() for g in torch.meshgrid(u, v, indexing="ij"))
+    heights = torch.quantile(inner[:, 2], torch.linspace(0.0, 1.0, offsets, dtype=torch.float64))
+    return min(chamfer(inner, torch.stack([gu, gv, torch.full_like(gu, float(z))], 1)) for z in heights) / h
 
 
 def main() -> None:
@@ -91,7 +119,8 @@ def main() -> None:
                 continue
             m = {c: float(np.mean(v[c])) for c in v}
             spread = max(float(np.std(v[c], ddof=1)) if len(v[c]) > 1 else 0.0 for c in v)
-            rows.append({"pair": spec, "metric": metric, **m, "spread": spread,
+            extra = {"style_relief": style_relief_chamfer(style.means)} if metric == "content_chamfer" else {}
+            rows.append({"pair": spec, "metric": metric, **m, "spread": spread, **extra,
                          "separation": (m["negative"] - m["floor"]) / spread if spread > 0 else float("inf"),
                          "verdict": verdict(m["floor"], m["negative"], m["positive"], spread)})
             print(f"{spec} {metric:22s} floor {m['floor']:.4g} negative {m['negative']:.4g} positive "

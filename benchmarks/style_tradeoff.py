@@ -106,7 +106,8 @@ VARIANTS = {
 
 def main() -> None:
     from wast3d.image_metrics import coverage
-    from wast3d.metrics import MetricsConfig, content_chamfer, relief_w1, tilt_degrees, wasserstein_1d
+    from wast3d.metrics import content_chamfer
+    from wast3d.ply import write_ply
     from wast3d.registration import mean_spacing
     from wast3d.sinkhorn import SinkhornConfig
     from wast3d.stylize import SINKHORN_DEFAULTS, StylizeConfig
@@ -115,7 +116,7 @@ def main() -> None:
     ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"],
                     help="content:style; lego:STYLE once results/scenes/lego/surface.ply exists")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    ap.add_argument("--seeds", type=int, default=1, help="metric seeds per result (the spread is metrics_validation's)")
+    ap.add_argument("--seeds", type=int, default=1, help="metric seeds per result (mean; with 2 or more also *_std columns)")
     ap.add_argument("--out", default=str(OUT / "style_tradeoff.csv"))
     ap.add_argument("--renders", default=str(OUT / "renders" / "style_tradeoff"), help="folder of the kept renders")
     ap.add_argument("--rescore", action="store_true", help="recompute texture_swd of the finished rows from the kept renders")
@@ -163,16 +164,12 @@ def main() -> None:
             row = {"pair": spec, "variant": name, "seconds": secs, "gaussians": len(result),
                    "content_chamfer": content_chamfer(result.means, content.means),
                    "coverage": coverage(frames[..., 3], content_frames[..., 3])}
-            for seed in range(a.seeds):
-                m = MetricsConfig(seed=seed)
-                vals = {"relief_w1": relief_w1(result.means, style.means, m),
-                        "tilt_w1_deg": wasserstein_1d(tilt_degrees(result, m.normal_k), tilt_degrees(style, m.normal_k)),
-                        "texture_swd": texture_score(frames, reference, seed)}
-                for k, val in vals.items():
-                    row[k] = row.get(k, 0.0) + val / a.seeds
+            write_ply(tmp / f"{spec}_{name}" / "result.ply", result)  # kept: --rescore recomputes from it
+            row.update(seed_scores(result, frames, style, reference, a.seeds))
             row["negative_losses"] = int(sum(1 for c in curves if c and min(c) < -1e-6 * abs(c[0])))
             row["wall_seconds"] = time.perf_counter() - t0
-            pd.DataFrame([row]).to_csv(out, mode="a", header=not out.exists(), index=False)
+            done_rows = [pd.read_csv(out)] if out.exists() else []  # columns may differ (*_std): align by name
+            pd.concat(done_rows + [pd.DataFrame([row])], ignore_index=True).to_csv(out, index=False)
             print(f"{spec} {name:18s} " + " ".join(f"{k} {row[k]:.4g}" for k in
                   ("content_chamfer", "relief_w1", "tilt_w1_deg", "texture_swd", "coverage", "seconds")), flush=True)
         contact_sheet(sheet, out.parent / f"style_tradeoff_{cname}_{sname}.png")
@@ -203,24 +200,51 @@ def contact_sheet(frames: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def seed_scores(result, frames, style, reference, seeds: int) -> dict:
+    """relief_w1, tilt_w1_deg and texture_swd of a result: the mean over ``seeds`` metric seeds and,
+    with 2 or more, the standard deviation (``*_std``: the noise a difference is measured against)."""
+    from wast3d.metrics import MetricsConfig, relief_w1, tilt_degrees, wasserstein_1d
+
+    vals: dict[str, list] = {}
+    for seed in range(seeds):
+        m = MetricsConfig(seed=seed)
+        for k, v in (("relief_w1", relief_w1(result.means, style.means, m)),
+                     ("tilt_w1_deg", wasserstein_1d(tilt_degrees(result, m.normal_k), tilt_degrees(style, m.normal_k))),
+                     ("texture_swd", texture_score(frames, reference, seed))):
+            vals.setdefault(k, []).append(v)
+    out = {k: float(np.mean(v)) for k, v in vals.items()}
+    if seeds > 1:
+        out.update({f"{k}_std": float(np.std(v, ddof=1)) for k, v in vals.items()})
+    return out
+
+
 def rescore(out: Path, renders: Path, seeds: int) -> None:
-    """Recompute ``texture_swd`` of every row of ``out`` from the renders kept under ``renders``."""
+    """Recompute the seeded metrics of every row of ``out`` from the renders (and result.ply) kept
+    under ``renders``: all of them where the result was kept, texture_swd alone where only the frames were."""
+    from wast3d.ply import read_ply
     from wast3d.render import read_frames
 
     df = pd.read_csv(out)
-    refs = {}
+    refs, styles = {}, {}
     for i, r in df.iterrows():
         folder = renders / f"{r.pair}_{r.variant}"
         if not (folder / "frames").is_dir():
-            print(f"{r.pair} {r.variant}: no kept render under {folder}, texture_swd left as it was")
+            print(f"{r.pair} {r.variant}: no kept render under {folder}, left as it was")
             continue
         if r.pair not in refs:
             cname, sname = r.pair.split(":")
-            refs[r.pair] = texture_reference_frames(demo_scene(sname), demo_scene(cname),
+            styles[r.pair] = demo_scene(sname)
+            refs[r.pair] = texture_reference_frames(styles[r.pair], demo_scene(cname),
                                                     renders / f"{r.pair}_texture_reference")
         frames = read_frames(folder)
-        df.loc[i, "texture_swd"] = float(np.mean([texture_score(frames, refs[r.pair], sd) for sd in range(seeds)]))
-        print(f"{r.pair} {r.variant:18s} texture_swd {df.loc[i, 'texture_swd']:.4g}", flush=True)
+        if (folder / "result.ply").exists() or r.variant == "input":
+            result = demo_scene(r.pair.split(":")[0]) if r.variant == "input" else read_ply(folder / "result.ply")
+            for k, v in seed_scores(result, frames, styles[r.pair], refs[r.pair], seeds).items():
+                df.loc[i, k] = v
+        else:
+            df.loc[i, "texture_swd"] = float(np.mean([texture_score(frames, refs[r.pair], sd) for sd in range(seeds)]))
+        print(f"{r.pair} {r.variant:18s} relief_w1 {df.loc[i, 'relief_w1']:.4g} texture_swd {df.loc[i, 'texture_swd']:.4g}",
+              flush=True)
     df.to_csv(out, index=False)
     plot(df, out.with_suffix(".png"))
     print(f"rescored {out}")

@@ -63,7 +63,7 @@ class MetricsConfig:
     colour_points: int = 4096
     blur: float = 0.05
     relief_scales: tuple = (8, 16, 32)
-    relief_centres: int = 2048
+    relief_centres: int = 8192
     seed: int = 0
 
     def __post_init__(self):
