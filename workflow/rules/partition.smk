@@ -19,7 +19,7 @@ rule surface:
     benchmark:
         f"{RESULTS}/benchmarks/rules/surface_{{scene}}.tsv"
     shell:
-        "{params.exe} surface {input.ply} {output.ply} {output.json} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} surface {input.ply} {output.ply} {output.json} --params '{params.cfg}' 2> {log}"
 
 
 rule cluster:
@@ -40,7 +40,7 @@ rule cluster:
     benchmark:
         f"{RESULTS}/benchmarks/rules/cluster_{{content}}_{{partition}}.tsv"
     shell:
-        "{params.exe} cluster {input.content} {output.npz} --picture {output.png} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} cluster {input.content} {output.npz} --picture {output.png} --params '{params.cfg}' 2> {log}"
 
 
 rule register:
@@ -63,7 +63,7 @@ rule register:
     benchmark:
         f"{RESULTS}/benchmarks/rules/register_{{content}}__{{style}}_{{partition}}.tsv"
     shell:
-        "{params.exe} register {input.content} {input.clusters} {input.style} {output.npz} "
+        "{params.exe} --threads {threads} register {input.content} {input.clusters} {input.style} {output.npz} "
         "--picture {output.png} --params '{params.cfg}' 2> {log}"
 
 
@@ -86,5 +86,5 @@ rule select:
     benchmark:
         f"{RESULTS}/benchmarks/rules/select_{{content}}__{{style}}_{{partition}}.tsv"
     shell:
-        "{params.exe} select {input.content} {input.clusters} {input.style} {input.reg} {output.npz} "
+        "{params.exe} --threads {threads} select {input.content} {input.clusters} {input.style} {input.reg} {output.npz} "
         "--params '{params.cfg}' 2> {log}"

@@ -15,6 +15,7 @@ rule pretrain:
         data=lambda w: SCENES[w.scene]["path"],
         ckpt=lambda w: f"{RESULTS}/scenes/{w.scene}/pretrain.ckpt",
         cfg=lambda w: stage_json(pretrain_params(w.scene)),
+    threads: HEAVY_THREADS
     resources:
         gpu=1,
         mem_mb=16000,
@@ -26,5 +27,5 @@ rule pretrain:
     benchmark:
         f"{RESULTS}/benchmarks/rules/pretrain_{{scene}}.tsv"
     shell:
-        "{params.exe} pretrain {params.data} {output.ply} {output.csv} {output.json} "
+        "{params.exe} --threads {threads} pretrain {params.data} {output.ply} {output.csv} {output.json} "
         "--checkpoint {params.ckpt} --no-progress --params '{params.cfg}' 2> {log}"

@@ -19,7 +19,7 @@ rule procedural_scene:
     benchmark:
         f"{RESULTS}/benchmarks/rules/scene_{{scene}}.tsv"
     shell:
-        "{params.exe} scene {params.kind} {params.name} {output.ply} --n {params.n} --seed {params.seed} 2> {log}"
+        "{params.exe} --threads {threads} scene {params.kind} {params.name} {output.ply} --n {params.n} --seed {params.seed} 2> {log}"
 
 
 rule import_ply:
@@ -39,7 +39,7 @@ rule import_ply:
     benchmark:
         f"{RESULTS}/benchmarks/rules/import_{{scene}}.tsv"
     shell:
-        "{params.exe} import-ply {input} {output.ply} {params.drop} 2> {log}"
+        "{params.exe} --threads {threads} import-ply {input} {output.ply} {params.drop} 2> {log}"
 
 
 rule preview:
@@ -58,7 +58,7 @@ rule preview:
     benchmark:
         f"{RESULTS}/benchmarks/rules/preview_{{scene}}.tsv"
     shell:
-        "{params.exe} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} --threads {threads} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
 
 
 rule export_views:
@@ -78,4 +78,4 @@ rule export_views:
     benchmark:
         f"{RESULTS}/benchmarks/rules/export_views_{{scene}}.tsv"
     shell:
-        "{params.exe} export-views {input.ply} {params.folder} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} --threads {threads} export-views {input.ply} {params.folder} --views {params.views} --size {params.size} 2> {log}"

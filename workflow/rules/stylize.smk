@@ -18,6 +18,7 @@ rule sinkhorn:
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("stylize", {})),
+    threads: HEAVY_THREADS
     resources:
         gpu=1,
         mem_mb=8000,
@@ -29,7 +30,7 @@ rule sinkhorn:
     benchmark:
         f"{RESULTS}/benchmarks/rules/sinkhorn_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} stylize {input.content} {input.clusters} {input.style} {input.reg} {input.sel} "
+        "{params.exe} --threads {threads} stylize {input.content} {input.clusters} {input.style} {input.reg} {input.sel} "
         "{output.ply} {output.npz} {output.csv} --params '{params.cfg}' 2> {log}"
 
 
@@ -50,4 +51,4 @@ rule rescale:
     benchmark:
         f"{RESULTS}/benchmarks/rules/rescale_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} rescale {input.ply} {input.npz} {output.ply} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} rescale {input.ply} {input.npz} {output.ply} --params '{params.cfg}' 2> {log}"
