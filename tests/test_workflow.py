@@ -161,6 +161,8 @@ def test_whole_dag_artifacts(tiny_run):
     assert (t1.colour_sinkhorn[t1.run == "colour_ot"] < t1.colour_sinkhorn[t1.run == "input"].iloc[0]).all()
     assert np.isfinite(t1.time_s[t1.run != "input"]).all() and (t1.peak_mem_mb[t1.run != "input"] > 0).all()
     assert "not computed" not in (r / "tables/table1.md").read_text()
+    page = (r / "tables/table1.html").read_text()  # what the report shows inline
+    assert page.count("<tr>") == 1 + len(t1) and "<th>content_chamfer</th>" in page and "colour transfer" in page
 
 
 def test_caching_reruns_only_what_a_change_affects(tiny_run):

@@ -261,13 +261,14 @@ def table_command(name: str, help_: str, flag: str, row_help: str, row_fn: str, 
         sub.add_argument("results", type=Path)
         sub.add_argument("out_csv", type=Path)
         sub.add_argument("--md", type=Path)
+        sub.add_argument("--html", type=Path, help="also an HTML page of the table (the report shows it inline)")
         sub.add_argument(flag, dest="specs", nargs="+", required=True, help=row_help)
 
         def run(a):
             from . import tables
 
             rows = [getattr(tables, row_fn)(a.results, spec) for spec in a.specs]
-            print(tables.write_table(rows, a.out_csv, a.md).drop(columns=list(hidden)).to_string(index=False))
+            print(tables.write_table(rows, a.out_csv, a.md, a.html).drop(columns=list(hidden)).to_string(index=False))
 
         return run
 

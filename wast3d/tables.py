@@ -47,21 +47,40 @@ def run_row(results: Path, content: str, style: str, experiment: str) -> dict:
     return row
 
 
-def write_table(rows: list[dict], csv_path: Path, md_path: Path | None = None) -> pd.DataFrame:
+def write_table(rows: list[dict], csv_path: Path, md_path: Path | None = None, html_path: Path | None = None) -> pd.DataFrame:
     df = pd.DataFrame(rows)
     with atomic_path(csv_path) as tmp:
         df.to_csv(tmp, index=False)
-    if md_path:
-        with atomic_path(md_path) as tmp:
-            tmp.write_text(to_markdown(df))
+    for path, fn in ((md_path, to_markdown), (html_path, to_html)):
+        if path:
+            with atomic_path(path) as tmp:
+                tmp.write_text(fn(df))
     return df
+
+
+def _cell(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) and v == v else ("" if v is None or v != v else str(v))
+
+
+def to_html(df: pd.DataFrame) -> str:
+    """A standalone HTML page holding the table (what the Snakemake report shows inline; a CSV it only
+    offers as a download)."""
+    import html
+
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(v))}</td>" for v in r) + "</tr>\n"
+                   for r in df.itertuples(index=False))
+    style = ("body{font-family:sans-serif;font-size:13px} table{border-collapse:collapse} "
+             "th,td{border:1px solid #bbb;padding:3px 6px;text-align:right} th{background:#eee} "
+             "td:first-child,td:nth-child(2),td:nth-child(3){text-align:left}")
+    return (f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><style>{style}</style></head><body>\n"
+            f"<table>\n<thead><tr>{head}</tr></thead>\n<tbody>\n{body}</tbody>\n</table>\n</body></html>\n")
 
 
 def to_markdown(df: pd.DataFrame) -> str:
     """A GitHub table without the optional ``tabulate`` dependency."""
-    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else ("" if v is None else str(v))  # noqa: E731
     head = "| " + " | ".join(df.columns) + " |\n|" + "---|" * len(df.columns) + "\n"
-    return head + "".join("| " + " | ".join(fmt(v) for v in r) + " |\n" for r in df.itertuples(index=False))
+    return head + "".join("| " + " | ".join(_cell(v) for v in r) + " |\n" for r in df.itertuples(index=False))
 
 
 # ---- Table 1 ---------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ rule render_method:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} render {input.ply} {input.reference} {output} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} render {input.ply} {input.reference} {output} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule render_scene:
@@ -38,7 +38,7 @@ rule render_scene:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_scene_{{scene}}.tsv"
     shell:
-        "{params.exe} render {input.ply} {input.ply} {output} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} render {input.ply} {input.ply} {output} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule texture_reference:
@@ -57,7 +57,7 @@ rule texture_reference:
     benchmark:
         f"{RESULTS}/benchmarks/rules/texture_reference_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} texture-reference {input.style} {input.content} {output} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} texture-reference {input.style} {input.content} {output} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule colour_transfer:
@@ -77,7 +77,7 @@ rule colour_transfer:
     benchmark:
         f"{RESULTS}/benchmarks/rules/colour_transfer_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} colour-transfer {input.content} {input.style} {output.ply} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} colour-transfer {input.content} {input.style} {output.ply} --params '{params.cfg}' 2> {log}"
 
 
 rule evaluate:
@@ -102,7 +102,7 @@ rule evaluate:
     benchmark:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} evaluate {input.result} {input.content} {input.style} {input.result_render} "
+        "{params.exe} --threads {threads} evaluate {input.result} {input.content} {input.style} {input.result_render} "
         "{input.style_render} {input.texture_reference} {input.content_render} {output} --params '{params.cfg}' 2> {log}"
 
 
@@ -126,15 +126,16 @@ rule comparison_sheet:
     benchmark:
         f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} compare {output} {params.columns} 2> {log}"
+        "{params.exe} --threads {threads} compare {output} {params.columns} 2> {log}"
 
 
 rule table1:
     input:
         [f"{RESULTS}/eval/{c}__{s}/{m}.json" for c, s in TABLE1_PAIRS for m in TABLE1_METHODS],
     output:
-        csv=report(f"{RESULTS}/tables/table1.csv", caption="../report/table1.rst", category="Tables"),
+        csv=f"{RESULTS}/tables/table1.csv",
         md=f"{RESULTS}/tables/table1.md",
+        html=report(f"{RESULTS}/tables/table1.html", caption="../report/table1.rst", category="Tables"),
     params:
         exe=WAST3D,
         results=lambda w, output: os.path.dirname(os.path.dirname(output.csv)),
@@ -146,4 +147,4 @@ rule table1:
     benchmark:
         f"{RESULTS}/benchmarks/rules/table_table1.tsv"
     shell:
-        "{params.exe} table1 {params.results} {output.csv} --md {output.md} --row {params.rows} > {log} 2>&1"
+        "{params.exe} --threads {threads} table1 {params.results} {output.csv} --md {output.md} --html {output.html} --row {params.rows} > {log} 2>&1"

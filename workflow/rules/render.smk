@@ -18,7 +18,7 @@ rule result_preview:
     benchmark:
         f"{RESULTS}/benchmarks/rules/preview_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} --threads {threads} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
 
 
 rule summary:
@@ -27,8 +27,9 @@ rule summary:
     input:
         lambda w: [f"{RESULTS}/stylize/{r}/final.json" for r in summary_runs(table_experiments(w.table))],
     output:
-        csv=report(f"{RESULTS}/tables/{{table}}.csv", caption="../report/summary.rst", category="Tables"),
+        csv=f"{RESULTS}/tables/{{table}}.csv",
         md=f"{RESULTS}/tables/{{table}}.md",
+        html=report(f"{RESULTS}/tables/{{table}}.html", caption="../report/summary.rst", category="Tables"),
     params:
         exe=WAST3D,
         results=lambda w, output: os.path.dirname(os.path.dirname(output.csv)),
@@ -40,4 +41,4 @@ rule summary:
     benchmark:
         f"{RESULTS}/benchmarks/rules/table_{{table}}.tsv"
     shell:
-        "{params.exe} summarize {params.results} {output.csv} --md {output.md} --run {params.runs} > {log} 2>&1"
+        "{params.exe} --threads {threads} summarize {params.results} {output.csv} --md {output.md} --html {output.html} --run {params.runs} > {log} 2>&1"
