@@ -206,9 +206,10 @@ def test_autograd_wrapper():
 # ---- the solver as stage 5 uses it: warm starts along an optimization, blurs 0.01 .. 1 (issue #12) ----
 
 
-def stylize_trajectory(blur, steps=12, **kw):
-    """Adam on y as stylize_cluster does (content x fixed and its f_aa reused, float32): the reported
-    values, and the last y."""
+def stylize_trajectory(blur, steps=12, optimizer="adam", **kw):
+    """Adam (lr 0.02) or the Sinkhorn flow (the default: lr 0.2, y <- y - lr M grad) on y as
+    stylize_cluster does (content x fixed and its f_aa reused, float32): the reported values, and the
+    last y."""
     from wast3d.procedural import make_scene
     from wast3d.stylize import normalize_pair
 
@@ -226,23 +227,30 @@ def stylize_trajectory(blur, steps=12, **kw):
         res = sinkhorn(x, y, cfg, init=pot, x_fixed=True)
         pot = res.potentials
         vals.append(float(res.value))
-        Y.grad = res.grad_y.contiguous()
-        opt.step()
+        if optimizer == "flow":  # big steps: each warm solve starts further from its optimum
+            Y.data -= 0.2 * len(y) * res.grad_y
+        else:
+            Y.grad = res.grad_y.contiguous()
+            opt.step()
     return x, y, vals, res
 
 
+@pytest.mark.parametrize("optimizer", ["adam", "flow"])
 @pytest.mark.parametrize("blur", [0.01, 0.05, 0.3, 1.0])
-def test_divergence_stays_non_negative_along_a_warm_started_optimization(blur):
+def test_divergence_stays_non_negative_along_a_warm_started_optimization(blur, optimizer):
     """S_eps >= 0: at every reported step, the value is >= -1e-6 x the first (a stale, unconverged
     self-potential f_aa made it -0.3x at blur 0.05 and -2.5x at 0.3), and the last one matches a
     converged cold solve (float64, scaling 0.9 + many iterations)."""
-    x, y, vals, res = stylize_trajectory(blur, tol=1e-3)
+    x, y, vals, res = stylize_trajectory(blur, optimizer=optimizer, tol=1e-3)
     assert min(vals) >= -1e-6 * abs(vals[0]), (min(vals), vals[0])
     ref = float(sinkhorn(x.double(), y.double(), SinkhornConfig(blur=blur, scaling=0.9, extra_iters=1000),
                          grad_y=False).value)
-    # at blur 0.01 the warm solves stop at max_iters before the tolerance (eps = 1e-4 converges slowly):
-    # a few percent of error there, and no sign error
-    assert ref > 0 and abs(vals[-1] - ref) <= (0.05 if blur < 0.05 else 0.01) * ref, (vals[-1], ref)
+    # at blur 0.01 the warm solves stop at max_iters before the tolerance: tol * eps = 1e-7 is below what
+    # float32 potentials resolve (3,000 iterations do not reach it either). No sign error, but the value
+    # is a few percent off after Adam's small steps and ~30 % after the flow's large ones (each warm
+    # start further from its optimum); from blur 0.05 on, 1 %
+    bound = {"adam": 0.05, "flow": 0.35}[optimizer] if blur < 0.05 else 0.01
+    assert ref > 0 and abs(vals[-1] - ref) <= bound * ref, (vals[-1], ref)
 
 
 def test_self_potential_is_reused_only_once_converged():

@@ -220,3 +220,26 @@ def test_slurm_profile_maps_resources_to_sbatch(tmp_path):
     assert "--mem 8000" in s and "-t 240" in s
     c = calls["cluster"]
     assert "-p cpu" in c and "gpu" not in c.replace("-p cpu", "") and "--cpus-per-task=4" in c
+
+
+@pytest.mark.browser
+def test_report_opens_in_a_browser_with_table1_as_a_table(tiny_run, tmp_path):
+    """The Snakemake report of the tiny run, opened by a real headless Chromium: it renders (the
+    categories are in the DOM after its scripts ran) and Table 1 is an HTML item shown inline."""
+    import shutil
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if browser is None:
+        pytest.skip("no chromium on this machine (apt-get install -y chromium)")
+    report = tmp_path / "report.html"
+    snake(tiny_run, "--report", str(report))
+    r = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
+                        "--dump-dom", report.as_uri()], capture_output=True, text=True, timeout=120)
+    dom = r.stdout
+    assert r.returncode == 0 and len(dom) > 1000, r.stderr[-2000:]
+    for category in ("Tables", "Figures", "Results"):
+        assert category in dom, category
+    assert "table1.html" in dom
+    # the item itself: the table page the report embeds, as the workflow wrote it
+    page = (tiny_run / "results/tables/table1.html").read_text()
+    assert "<table>" in page and "<th>content_chamfer</th>" in page
