@@ -208,6 +208,29 @@ def test_footprint_selection_keeps_whole_elements_where_knn_takes_a_slab():
     assert float(style[k0][is_dome[k0], 2].max()) < 0.2 < float(style[d0][is_dome[d0], 2].max())
 
 
+def test_footprint_grows_where_the_content_is_sparse():
+    """A content point's footprint is the area it stands for (its nearest-neighbour distance), at
+    least the style's spacing: a cluster sampled 4x sparser than the style on one half (a trained
+    scene's flat region, few large Gaussians) still gets every style Gaussian under it, no holes."""
+    style, _ = _ground_with_dome()
+    flat_style = style[style[:, 2].abs() < 1e-9]
+    dense = torch.arange(-0.5, 0.0, 0.05, dtype=D64) + 0.013
+    sparse = torch.arange(0.0, 0.5 + 1e-9, 0.2, dtype=D64) + 0.013
+    ys = torch.arange(-0.5, 0.5 + 1e-9, 0.05, dtype=D64) + 0.013
+    pts = [torch.stack(torch.meshgrid(dense, ys, indexing="ij"), -1).reshape(-1, 2),
+           torch.stack(torch.meshgrid(sparse, ys[::4], indexing="ij"), -1).reshape(-1, 2)]
+    a = torch.cat(pts)
+    mapped = torch.cat([a, torch.zeros(len(a), 1, dtype=D64)], 1)
+    labels = torch.zeros(len(a), dtype=torch.long)
+    off, idx = select_footprint(mapped, labels, style, 1.0, 0.05)
+    inner = flat_style[(flat_style[:, :2] > -0.45).all(1) & (flat_style[:, :2] < 0.45).all(1)]
+    chosen = style[idx]
+    missing = torch.cdist(inner[:, :2], chosen[:, :2], compute_mode="donot_use_mm_for_euclid_dist").min(1).values > 1e-12
+    assert not bool(missing.any()), f"{int(missing.sum())} style Gaussians under the cluster left out"
+    # the footprint of the dense half is still one style spacing: nothing far beyond its edge
+    assert float(chosen[:, 0].min()) >= -0.5 + 0.013 - 0.05 - 1e-9
+
+
 def test_select_config_checks_mode_and_radius():
     assert SelectConfig(mode="footprint", radius=2.0).mode == "footprint"
     with pytest.raises(ValueError, match="select.mode"):

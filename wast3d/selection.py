@@ -9,11 +9,17 @@ scene), cluster i owning ``indices[offsets[i]:offsets[i+1]]``, sorted.
 ``mode: footprint`` (our variant, not the paper's): the style Gaussians *under and over* the mapped
 cluster instead of the ones nearest to it,
 
-    D_i = { h in style :  min_{g in C_i} | P_i (h - S_i R_i (g_x - t_i)) | <= radius * spacing,
-                          | n_i . (h - c_i) | <= r_i }
+    D_i = { h in style :  min_{g in C_i} | P_i (h - S_i R_i (g_x - t_i)) | / rho_g <= radius,
+                          | n_i . (h - c_i) | <= r_i },
+    rho_g = max(spacing, d_g)
 
 with n_i the least-variance axis of the mapped cluster (its normal), P_i the projection onto the plane
-orthogonal to n_i, c_i its centroid and r_i its radius. A kNN ball of small k around points that lie
+orthogonal to n_i, c_i its centroid, r_i its radius, and d_g the in-plane distance from the mapped
+point g to its nearest neighbour in the cluster: each content point's footprint is the area it stands
+for, at least the style's spacing. A trained scene covers flat regions with few large Gaussians (the
+lego's base plate) and details with many small ones, so its surface samples are far sparser in some
+places than the mean spacing that sets the registration's scale says; with a fixed radius those
+places came out as holes (lego x pebbles: coverage 0.92). A kNN ball of small k around points that lie
 on the style's mean surface takes a slab of it and leaves the tops of the elements (pebble domes,
 blade tips) out; the footprint keeps every element the cluster covers whole. It assumes the style is
 a height field over the plane of each cluster at the cluster's scale (a ground with objects on it).
@@ -86,16 +92,22 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
         c = y.mean(0)
         r = float(np.linalg.norm(y - c, axis=1).max()) if len(y) > 1 else spacing
         n = np.linalg.eigh(np.cov((y - c).T) if len(y) > 2 else np.eye(3))[1][:, 0]
-        cand = np.asarray(tree3.query_ball_point(c, np.sqrt(2) * r + radius * spacing), dtype=np.int64)
+        flat_y = (y - c) - np.outer((y - c) @ n, n)
+        tree_y = cKDTree(flat_y)
+        rho = np.maximum(tree_y.query(flat_y, k=2)[0][:, 1], spacing) if len(y) > 1 else np.full(1, spacing)
+        reach = radius * float(rho.max())
+        cand = np.asarray(tree3.query_ball_point(c, np.sqrt(2) * r + reach), dtype=np.int64)
         if len(cand) == 0:
             continue
         d = sty[cand] - c
         near = np.abs(d @ n) <= r
         cand, d = cand[near], d[near]
-        flat_y = (y - c) - np.outer((y - c) @ n, n)
         flat_s = d - np.outer(d @ n, n)
-        dist, _ = cKDTree(flat_y).query(flat_s, k=1, distance_upper_bound=radius * spacing)
-        keep = np.sort(cand[np.isfinite(dist)])
+        # every (style, mapped) pair closer than the largest footprint; h is kept when it lies in the
+        # footprint of any mapped point (a sparse point's large footprint may reach past denser ones)
+        pairs = cKDTree(flat_s).sparse_distance_matrix(tree_y, reach, output_type="ndarray")  # (i, j, v)
+        inside = pairs["i"][pairs["v"] <= radius * rho[pairs["j"]]]
+        keep = np.sort(cand[np.unique(inside)])
         clusters.append(np.full(len(keep), i, dtype=np.int64))
         chosen.append(keep)
     cl = torch.from_numpy(np.concatenate(clusters)) if clusters else torch.zeros(0, dtype=torch.int64)
