@@ -11,7 +11,7 @@ cluster instead of the ones nearest to it,
 
     D_i = { h in style :  min_{g in C_i} | P_i (h - S_i R_i (g_x - t_i)) | / rho_g <= radius,
                           | n_i . (h - c_i) | <= r_i },
-    rho_g = max(spacing, d_g)
+    rho_g = min(max(spacing, d_g), 4 spacing)
 
 with n_i the least-variance axis of the mapped cluster (its normal), P_i the projection onto the plane
 orthogonal to n_i, c_i its centroid, r_i its radius, and d_g the in-plane distance from the mapped
@@ -19,7 +19,8 @@ point g to its nearest neighbour in the cluster: each content point's footprint 
 for, at least the style's spacing. A trained scene covers flat regions with few large Gaussians (the
 lego's base plate) and details with many small ones, so its surface samples are far sparser in some
 places than the mean spacing that sets the registration's scale says; with a fixed radius those
-places came out as holes (lego x pebbles: coverage 0.92). A kNN ball of small k around points that lie
+places came out as holes (lego x pebbles: coverage 0.92). The cap keeps an isolated point (lego: up
+to 15 style spacings from its neighbour) from claiming a large patch of the style. A kNN ball of small k around points that lie
 on the style's mean surface takes a slab of it and leaves the tops of the elements (pebble domes,
 blade tips) out; the footprint keeps every element the cluster covers whole. It assumes the style is
 a height field over the plane of each cluster at the cluster's scale (a ground with objects on it).
@@ -36,6 +37,7 @@ from .geometry import knn
 
 
 MODES = ("knn", "footprint")
+MAX_FOOTPRINT = 4.0  # a content point's footprint is at most this many style spacings (isolated points)
 
 
 @dataclass
@@ -93,20 +95,19 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
         r = float(np.linalg.norm(y - c, axis=1).max()) if len(y) > 1 else spacing
         n = np.linalg.eigh(np.cov((y - c).T) if len(y) > 2 else np.eye(3))[1][:, 0]
         flat_y = (y - c) - np.outer((y - c) @ n, n)
-        tree_y = cKDTree(flat_y)
-        rho = np.maximum(tree_y.query(flat_y, k=2)[0][:, 1], spacing) if len(y) > 1 else np.full(1, spacing)
-        reach = radius * float(rho.max())
-        cand = np.asarray(tree3.query_ball_point(c, np.sqrt(2) * r + reach), dtype=np.int64)
+        rho = np.full(len(y), spacing)
+        if len(y) > 1:
+            rho = np.clip(cKDTree(flat_y).query(flat_y, k=2)[0][:, 1], spacing, MAX_FOOTPRINT * spacing)
+        cand = np.asarray(tree3.query_ball_point(c, np.sqrt(2) * r + radius * float(rho.max())), dtype=np.int64)
         if len(cand) == 0:
             continue
         d = sty[cand] - c
         near = np.abs(d @ n) <= r
         cand, d = cand[near], d[near]
         flat_s = d - np.outer(d @ n, n)
-        # every (style, mapped) pair closer than the largest footprint; h is kept when it lies in the
-        # footprint of any mapped point (a sparse point's large footprint may reach past denser ones)
-        pairs = cKDTree(flat_s).sparse_distance_matrix(tree_y, reach, output_type="ndarray")  # (i, j, v)
-        inside = pairs["i"][pairs["v"] <= radius * rho[pairs["j"]]]
+        # the style Gaussians in each mapped point's own footprint (one query, a radius per point)
+        hits = cKDTree(flat_s).query_ball_point(flat_y, radius * rho)
+        inside = np.fromiter((j for h in hits for j in h), dtype=np.int64)
         keep = np.sort(cand[np.unique(inside)])
         clusters.append(np.full(len(keep), i, dtype=np.int64))
         chosen.append(keep)
