@@ -50,7 +50,9 @@ def verdict(floor: float, neg: float, pos: float, spread: float) -> str:
 def style_relief_chamfer(points: torch.Tensor, margin: float = 0.1, offsets: int = 21) -> float:
     """Chamfer between a planar style patch [N, 3] and its flat base, in the patch's mean spacing: the
     base is the least-squares plane of the points, sampled on a grid at that spacing over the patch's
-    extent shrunk by ``margin`` on each side (edges left out on both sides), at the best of ``offsets``
+    extent shrunk by ``margin`` on each side (edges left out on both sides; grid points more than a
+    spacing from the patch's in-plane footprint dropped, since the plane's axes need not follow the
+    patch's edges), at the best of ``offsets``
     heights (the 0-100 % quantiles of the points' heights)."""
     from wast3d.geometry import knn_mean_dist
     from wast3d.metrics import chamfer
@@ -66,6 +68,10 @@ def style_relief_chamfer(points: torch.Tensor, margin: float = 0.1, offsets: int
     u = torch.arange(float(lo[0] + m[0]), float(hi[0] - m[0]), h, dtype=torch.float64)
     v = torch.arange(float(lo[1] + m[1]), float(hi[1] - m[1]), h, dtype=torch.float64)
     gu, gv = (g.flatten() for g in torch.meshgrid(u, v, indexing="ij"))
+    from wast3d.geometry import knn
+
+    on = knn(torch.stack([gu, gv], 1), inner[:, :2].contiguous(), 1)[0][:, 0] <= h  # the base under the patch only
+    gu, gv = gu[on], gv[on]
     heights = torch.quantile(inner[:, 2], torch.linspace(0.0, 1.0, offsets, dtype=torch.float64))
     return min(chamfer(inner, torch.stack([gu, gv, torch.full_like(gu, float(z))], 1)) for z in heights) / h
 
