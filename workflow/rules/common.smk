@@ -15,11 +15,11 @@ validate(config, schema="../schemas/config.schema.yaml")
 RESULTS = "results"
 # the interpreter running Snakemake runs the stages too (no PATH set-up needed, same on cluster nodes)
 WAST3D = f"{sys.executable} -m wast3d"
-# Threads: every rule passes its `threads` to the command (`wast3d --threads N`: torch, the native
+# Threads: each job passes its `threads` to the command (`wast3d --threads N`: torch, the native
 # kernels and the KD-trees use exactly N, and OpenMP threads sleep when idle), so jobs that share a
 # machine never oversubscribe it. The two stages that dominate the run time (Sinkhorn, pretraining)
-# take HEAVY_THREADS (capped by --cores; a profile's `set-threads` overrides it); everything else 1,
-# so that light jobs run side by side.
+# take HEAVY_THREADS (capped by --cores; a profile's `set-threads` overrides it); the others 1, so
+# that light jobs run side by side.
 HEAVY_THREADS = 2
 
 SCENES = config["scenes"]
