@@ -263,8 +263,9 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         raise ValueError(f"{result_render}: frames {list(frames.shape)} differ from the content render "
                          f"{content_render} {list(reference.shape)}; render both with the same settings")
     out["coverage"] = coverage(frames[..., 3], reference[..., 3])
+    texture_frames = read_frames(texture_reference)  # a missing or corrupt reference is an error, not a result
     try:
-        out["texture_swd"] = texture_swd(frames, read_frames(texture_reference), tcfg)
+        out["texture_swd"] = texture_swd(frames, texture_frames, tcfg)
         out["texture_status"] = "computed"
     except ValueError as e:  # a collapsed or scattered result (e.g. entropic OT without debiasing) is a
         # result, not bad input: it gets no texture metric, and the table says why
