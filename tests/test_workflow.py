@@ -41,12 +41,12 @@ TINY = {
 }
 
 
-def snake(workdir: Path, *args, config: dict | None = None, check=True):
+def snake(workdir: Path, *args, config: dict | None = None, check=True, timeout: float | None = None):
     if config is not None:
         (workdir / "config").mkdir(parents=True, exist_ok=True)
         (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir), "--cores", "2", *args]
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     if check and r.returncode:
         raise AssertionError(f"snakemake failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
     return r
@@ -222,6 +222,19 @@ def test_slurm_profile_maps_resources_to_sbatch(tmp_path):
     assert "-p cpu" in c and "gpu" not in c.replace("-p cpu", "") and "--cpus-per-task=4" in c
 
 
+def test_gpu_requests_are_a_site_setting(tmp_path):
+    """No rule hard-wires a GPU: the CPU-only local cluster's profile resolves no `gpu` resource for any
+    job, while the site profile asks one for sinkhorn and pretrain."""
+    r = snake(tmp_path, "-n", "--profile", str(ROOT / "workflow/profiles/slurm-local"), config=copy.deepcopy(TINY))
+    res = dict(re.findall(r"^rule (\w+):.*?^    resources: (.*?)$", r.stdout, re.S | re.M))
+    assert "sinkhorn" in res and not any("gpu" in v for v in res.values()), res
+    assert "slurm_partition=local" in res["sinkhorn"]
+    for rules in (ROOT / "workflow/rules").glob("*.smk"):
+        assert "gpu" not in re.sub(r"#.*", "", rules.read_text()), rules.name
+    site = yaml.safe_load((ROOT / "workflow/profiles/slurm/config.yaml").read_text())["set-resources"]
+    assert site["sinkhorn"]["gpu"] == 1 and site["pretrain"]["gpu"] == 1
+
+
 @pytest.mark.browser
 def test_report_opens_in_a_browser_with_table1_as_a_table(tiny_run, tmp_path):
     """The Snakemake report of the tiny run, opened by a real headless Chromium: it renders (the
@@ -243,3 +256,84 @@ def test_report_opens_in_a_browser_with_table1_as_a_table(tiny_run, tmp_path):
     # the item itself: the table page the report embeds, as the workflow wrote it
     page = (tiny_run / "results/tables/table1.html").read_text()
     assert "<table>" in page and "<th>content_chamfer</th>" in page
+
+
+@pytest.fixture(scope="module")
+def local_slurm():
+    """The single-node cluster of scripts/local_slurm.sh: used if already up, else started (as root)
+    for this module and stopped after it."""
+    import os
+    import shutil
+
+    if shutil.which("slurmctld") is None or shutil.which("sbatch") is None:
+        pytest.skip("no SLURM on this machine (apt-get install -y slurm-wlm munge; see docs/install.md)")
+    script = ROOT / "scripts/local_slurm.sh"
+    if subprocess.run([script, "status"], capture_output=True).returncode == 0:
+        yield
+        return
+    if os.geteuid() != 0:
+        pytest.skip("the local SLURM cluster is not running and starting it needs root (sudo scripts/local_slurm.sh start)")
+    r = subprocess.run([script, "start"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    try:
+        yield
+    finally:
+        subprocess.run([script, "stop"], capture_output=True)
+
+
+def slurm_job_ids(stdout: str) -> list[int]:
+    return [int(i) for i in re.findall(r"submitted with SLURM jobid (\d+)", stdout)]
+
+
+def slurm_exit_codes(ids: list[int]) -> dict[int, int]:
+    """Exit status per job id, from the controller's own log (complete jobs leave squeue after MinJobAge)."""
+    log = Path("/var/log/slurm/slurmctld.log").read_text()
+    return {i: int(m.group(1)) for i in ids if (m := re.search(rf"_job_complete: JobId={i} WEXITSTATUS (\d+)", log))}
+
+
+@pytest.mark.slurm
+def test_tiny_workflow_through_a_real_slurm_cluster_equals_the_local_run(local_slurm, tiny_run, tmp_path):
+    """Every job of the tiny workflow as an sbatch job on the local cluster (profile slurm-local): each
+    job id is one the controller ran to exit status 0, and the results equal the local run's."""
+    from wast3d.ply import read_ply
+
+    cfg = tiny_config(tiny_run)  # the same CLIP checkpoint as the local run
+    r = snake(tmp_path, "--profile", str(ROOT / "workflow/profiles/slurm-local"), config=cfg, timeout=900)
+    ids = slurm_job_ids(r.stdout + r.stderr)
+    assert len(ids) >= 20 and len(set(ids)) == len(ids), ids
+    codes = slurm_exit_codes(ids)
+    assert codes == {i: 0 for i in ids}, "jobs the controller did not run to exit 0"
+    ours, local = tmp_path / "results", tiny_run / "results"
+    for f in ("stylize/blob__peb/default/final.ply", "stylize/blob__peb/abl-xyz/final.ply", "scenes/peb/scene.ply"):
+        a, b = read_ply(ours / f).tensors(), read_ply(local / f).tensors()
+        assert a.keys() == b.keys()
+        for k in a:
+            torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6, msg=f"{f}: {k}")
+    ta, tb = pd.read_csv(ours / "tables/table1.csv"), pd.read_csv(local / "tables/table1.csv")
+    num = [c for c in ta.columns if ta[c].dtype.kind == "f" and not c.startswith(("time", "peak"))]
+    assert list(ta.columns) == list(tb.columns) and len(num) > 5
+    np.testing.assert_allclose(ta[num].to_numpy(), tb[num].to_numpy(), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.slurm
+def test_a_failing_slurm_job_fails_the_workflow_instead_of_hanging(local_slurm, tmp_path):
+    """A scene PLY cut short passes the config schema and fails its first stage inside SLURM: the job
+    is reported failed (exit status not 0 in the controller's log) and Snakemake exits non-zero, in
+    bounded time, with the stage's error in the failed log."""
+    from conftest import random_scene
+    from wast3d.ply import write_ply
+
+    good = tmp_path / "good.ply"
+    write_ply(good, random_scene(50))
+    bad = tmp_path / "cut.ply"
+    bad.write_bytes(good.read_bytes()[:-100])
+    cfg = copy.deepcopy(TINY)
+    cfg["scenes"]["peb"] = {"source": "ply", "path": str(bad)}
+    r = snake(tmp_path / "wd", "--profile", str(ROOT / "workflow/profiles/slurm-local"), config=cfg, check=False,
+              timeout=300)
+    out = r.stdout + r.stderr
+    assert r.returncode != 0
+    ids = slurm_job_ids(out)
+    codes = slurm_exit_codes(ids)
+    assert any(c != 0 for c in codes.values()), (ids, codes)
+    assert "cut.ply: corrupt or truncated PLY" in out  # the stage's own error (its log) reaches the user

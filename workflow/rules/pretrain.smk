@@ -17,7 +17,6 @@ rule pretrain:
         cfg=lambda w: stage_json(pretrain_params(w.scene)),
     threads: HEAVY_THREADS
     resources:
-        gpu=1,
         mem_mb=16000,
         runtime=120,
     conda:

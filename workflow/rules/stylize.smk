@@ -20,7 +20,6 @@ rule sinkhorn:
         cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("stylize", {})),
     threads: HEAVY_THREADS
     resources:
-        gpu=1,
         mem_mb=8000,
         runtime=240,
     conda:
