@@ -9,6 +9,15 @@ os.environ.setdefault("WAST3D_CACHE", str(Path(__file__).resolve().parents[1] / 
 
 ROOT = Path(__file__).resolve().parents[1]
 LEGO = ROOT.parent / "shared" / "data" / "nerf_synthetic_lego_200"
+REAL_3DGS = ROOT.parent / "shared" / "data" / "real_3dgs"
+
+
+def real_3dgs(name: str) -> Path:
+    """A file of ../shared/data/real_3dgs (see its README); skips the test where it is absent."""
+    p = REAL_3DGS / name
+    if not p.exists():
+        pytest.skip(f"real data not present at {p}")
+    return p
 
 
 @pytest.fixture

@@ -23,7 +23,7 @@ from typing import Iterable
 
 import torch
 
-SH_C0 = 0.28209479177387814
+from .sh import SH_C0, rotate_sh_rest
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -248,7 +248,11 @@ class GaussianScene:
         in the *input* frame (``A = R diag(s)``). The new covariance ``A Sigma A^T`` is re-factored into
         a rotation and scales by an eigendecomposition when the scale is anisotropic (a sheared
         Gaussian is still a Gaussian); for a uniform scale the quaternion is rotated exactly.
-        Higher-order SH coefficients are not rotated (view-dependent colour is kept in world frame).
+        Higher-order SH coefficients (degree >= 1) are rotated by R (:func:`wast3d.sh.rotate_sh_rest`), so
+        each Gaussian shows the colour it showed along ``v`` now along ``R v``. For an anisotropic map
+        ``A = R diag(s)`` that is the rotation of A's polar decomposition ``A = U P`` (U orthogonal, P
+        symmetric positive definite): here ``U = R`` and ``P = diag(s)`` exactly. A stretch has no exact
+        counterpart for view-dependent colour; U is the rotation nearest to A (Frobenius norm).
         """
         dt, dev = self.dtype, self.device
         R = torch.eye(3, dtype=dt, device=dev) if rotation is None else rotation.to(dt)
@@ -271,7 +275,8 @@ class GaussianScene:
             evecs = torch.cat([evecs[:, :, :2], evecs[:, :, 2:] * sign[:, None, None]], dim=2)
             quats = rotmat_to_quat(evecs)
             log_scales = 0.5 * evals.clamp_min(1e-30).log()
-        return replace(self, means=means, quats=quats, log_scales=log_scales)
+        sh_rest = self.sh_rest if rotation is None else rotate_sh_rest(self.sh_rest, R)
+        return replace(self, means=means, quats=quats, log_scales=log_scales, sh_rest=sh_rest)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ One interface, :func:`rasterize`, three backends:
 - ``"gsplat"``: ``gsplat.rasterization`` on CUDA (optional dependency), the default on GPU.
 
 The torch and native backends share the projection (:func:`project`), spherical-harmonic colours
-(:func:`eval_sh`) and tile binning (:func:`bin_tiles`), all differentiable PyTorch.
+(:func:`wast3d.sh.eval_sh`) and tile binning (:func:`bin_tiles`), all differentiable PyTorch.
 
 Conventions: OpenCV camera (see :mod:`wast3d.cameras`); pixel centres at (i + 0.5, j + 0.5); the 2D
 covariance is dilated by 0.3 px^2 (the reference low-pass filter); a Gaussian contributes to a pixel
@@ -30,6 +30,7 @@ from torch.utils.checkpoint import checkpoint
 
 from .cameras import Camera
 from .gaussians import GaussianScene, quat_to_rotmat
+from .sh import eval_sh
 
 log = logging.getLogger(__name__)
 
@@ -38,35 +39,6 @@ EPS2D = 0.3
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
-
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
-
-
-def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
-    """Real spherical harmonics of the reference 3DGS code.
-
-    sh: [N, K, 3] (K >= (degree+1)^2), dirs: [N, 3] unit view directions -> [N, 3] (before +0.5).
-    """
-    res = SH_C0 * sh[:, 0]
-    if degree < 1:
-        return res
-    x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
-    res = res - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
-    if degree < 2:
-        return res
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    res = (res + SH_C2[0] * xy * sh[:, 4] + SH_C2[1] * yz * sh[:, 5] + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6]
-           + SH_C2[3] * xz * sh[:, 7] + SH_C2[4] * (xx - yy) * sh[:, 8])
-    if degree < 3:
-        return res
-    return (res + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9] + SH_C3[1] * xy * z * sh[:, 10]
-            + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11] + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-            + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13] + SH_C3[5] * z * (xx - yy) * sh[:, 14]
-            + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15])
 
 
 @dataclass

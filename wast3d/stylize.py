@@ -28,7 +28,9 @@ For cluster i, in the registered (style) frame:
   view-dependent coefficients are untouched. RGB offsets update the DC the same way per channel;
 - the optimized style Gaussians go back to the content frame by the inverse of eq. 7,
   ``x = R_i^T S_i^{-1} y + t_i``, covariances ``A Sigma A^T`` with ``A = R_i^T S_i^{-1}``;
-  opacities and the Gaussians' own rotations are carried over (rotated with A).
+  opacities and the Gaussians' own rotations are carried over (rotated with A), and the
+  view-dependent SH bands are rotated by ``R_i^T`` (the rotation of A's polar decomposition), so a
+  style Gaussian shows its highlights towards the same side of itself as in the style scene.
 
 Ablation switches: ``sinkhorn.debias=False`` (entropic OT, eq. 5), and ``loss="arap"``: instead of
 Sinkhorn, a Chamfer data term plus an as-rigid-as-possible energy over each style Gaussian's k
