@@ -9,6 +9,9 @@ the K red coefficients first, then green, then blue (the reference stores ``feat
 [N, K, 3] and writes ``transpose(1, 2).flatten``). Values are stored before activation: log-scale,
 opacity logit, unnormalized quaternion (w, x, y, z). Normals are written as zeros, as the reference.
 
+Also read (never written): the PlayCanvas/SuperSplat compressed layout, detected from the header
+(an element ``chunk`` and packed vertices; :mod:`wast3d.ply_compressed`).
+
 A plain point cloud (``x y z`` and optionally ``red green blue``) is read as initial Gaussians with the
 reference initialization: isotropic scale = RMS distance to the 3 nearest neighbours, identity
 rotation, opacity 0.1.
@@ -25,6 +28,7 @@ from plyfile import PlyData, PlyElement
 
 from .gaussians import GaussianScene, num_sh_rest, rgb_to_sh_dc, sh_degree_from_rest
 from .io_utils import atomic_path
+from .ply_compressed import decode, is_compressed
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +67,7 @@ def write_ply(path: str | Path, scene: GaussianScene) -> None:
 
 
 def _read_vertex(path: Path):
+    """(vertex element, its property names, the whole PlyData)."""
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
     try:
@@ -72,7 +77,7 @@ def _read_vertex(path: Path):
     if "vertex" not in ply:
         raise PlyError(f"{path}: no 'vertex' element (elements: {[el.name for el in ply.elements]})")
     v = ply["vertex"]
-    return v, [p.name for p in v.properties]
+    return v, [p.name for p in v.properties], ply
 
 
 def _column(v, path: Path, name: str) -> np.ndarray:
@@ -83,8 +88,8 @@ def _column(v, path: Path, name: str) -> np.ndarray:
 
 
 def is_gaussian_ply(path: str | Path) -> bool:
-    _, names = _read_vertex(Path(path))
-    return "opacity" in names or "f_dc_0" in names
+    _, names, _ = _read_vertex(Path(path))
+    return "opacity" in names or "f_dc_0" in names or "packed_position" in names
 
 
 def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
@@ -95,7 +100,9 @@ def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     With ``drop_invalid=True`` rows with NaN/inf are dropped instead and the count is logged.
     """
     path = Path(path)
-    v, names = _read_vertex(path)
+    v, names, ply = _read_vertex(path)
+    if is_compressed(ply):
+        return _read_compressed(path, ply)
     gaussian_markers = {"opacity", "f_dc_0", "scale_0", "rot_0"}
     if not gaussian_markers & set(names):
         return _read_point_cloud(path, v, names, drop_invalid)
@@ -151,6 +158,18 @@ def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     if (qn == 0).any():
         raise PlyError(f"{path}: property 'rot_*': {int((qn == 0).sum())} zero quaternions")
     return scene
+
+
+def _read_compressed(path: Path, ply) -> GaussianScene:
+    try:
+        d = decode(ply)
+    except ValueError as e:
+        raise PlyError(f"{path}: compressed PLY: {e}") from None
+    info = d.pop("info")
+    log.info("%s: PlayCanvas/SuperSplat compressed layout: %d Gaussians in %d chunks, colour ranges %s, "
+             "SH rest %d per channel", path, len(d["means"]), info["chunks"], "yes" if info["colour_ranges"] else "no",
+             info["sh_rest"])
+    return GaussianScene(**{k: torch.from_numpy(a) for k, a in d.items()})
 
 
 def _read_point_cloud(path: Path, v, names: list[str], drop_invalid: bool) -> GaussianScene:
