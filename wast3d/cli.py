@@ -76,6 +76,71 @@ def cmd_info(sub):
     return run
 
 
+@command("view", "serve an interactive 3D view of PLY scenes in the browser (viser)")
+def cmd_view(sub):
+    sub.add_argument("ply", type=Path, nargs="+", help="scenes, e.g. content, style and result (a dropdown switches)")
+    sub.add_argument("--host", default="127.0.0.1", help="0.0.0.0 to reach it from other machines")
+    sub.add_argument("--port", type=int, default=8080)
+    sub.add_argument("--max-gaussians", type=int, default=300_000, help="per scene, most opaque kept")
+
+    def run(a):
+        try:
+            from .viewer import run_forever, serve
+        except ImportError as e:  # pragma: no cover - depends on the install
+            raise ValueError(f"wast3d view needs viser ({e}); pip install 'wast3d[viewer]'") from None
+        server = serve(a.ply, a.host, a.port, a.max_gaussians)
+        log.info("view: open http://%s:%d (Ctrl-C stops)", "localhost" if a.host in ("0.0.0.0", "127.0.0.1") else a.host,
+                 server.get_port())
+        run_forever(server)
+        return 0
+
+    return run
+
+
+@command("run", "stylize CONTENT with STYLE through the workflow: writes OUT/config/config.yaml and runs Snakemake in OUT")
+def cmd_run(sub):
+    sub.add_argument("content", type=Path, help="PLY (reference, compressed or point cloud) or Blender folder")
+    sub.add_argument("style", type=Path, help="PLY or Blender folder")
+    sub.add_argument("out", type=Path, help="working folder: config/ and results/ go here (re-runs reuse its cache)")
+    sub.add_argument("--profile", default=None, help="Snakemake profile (default: the repository's workflow/profiles/local)")
+    sub.add_argument("-n", "--dry-run", action="store_true", help="only show what would run")
+    sub.add_argument("snakemake_args", nargs="*", help="more Snakemake arguments, after --")
+
+    def run(a):
+        import subprocess
+
+        import yaml
+
+        from .io_utils import atomic_path
+        from .quickstart import two_scene_config
+
+        root = Path(__file__).resolve().parents[1]
+        if not (root / "Snakefile").exists():
+            raise FileNotFoundError(f"{root / 'Snakefile'}: wast3d run needs the repository checkout (pip install -e)")
+        base = yaml.safe_load((root / "config" / "config.yaml").read_text())
+        cfg = two_scene_config(base, a.content, a.style)
+        cfg_path = a.out / "config" / "config.yaml"
+        cfg_path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(cfg_path) as tmp:
+            Path(tmp).write_text("# written by `wast3d run`; edit and re-run Snakemake in this folder\n"
+                                 + yaml.safe_dump(cfg, sort_keys=False))
+        (c, s), = cfg["pairs"]
+        log.info("run: %s x %s: config in %s", c, s, cfg_path)
+        cmd = [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", str(a.out),
+               "--profile", a.profile or str(root / "workflow" / "profiles" / "local"),
+               *(["-n"] if a.dry_run else []), *a.snakemake_args]
+        log.info("run: %s", " ".join(cmd))
+        rc = subprocess.run(cmd).returncode
+        if rc == 0 and not a.dry_run:
+            res = a.out / "results"
+            log.info("run: done. Result: %s; renders: %s; Table 1: %s; view: wast3d view %s %s %s",
+                     res / "stylize" / f"{c}__{s}" / "default" / "final.ply", res / "render" / "pairs" / f"{c}__{s}",
+                     res / "tables" / "table1.md", a.content, a.style, res / "stylize" / f"{c}__{s}" / "default" / "final.ply")
+        return rc
+
+    return run
+
+
 # ---- scenes ----------------------------------------------------------------------------------
 
 

@@ -1,0 +1,52 @@
+"""``wast3d run CONTENT STYLE OUT``: the config it writes and the workflow it starts (dry run)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import random_scene
+from wast3d.ply import write_ply
+from wast3d.quickstart import scene_name, two_scene_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_names_and_config(tmp_path):
+    assert scene_name(Path("/x/guitar.compressed.ply"), set()) == "guitar"
+    assert scene_name(Path("/r/scenes/pebbles/scene.ply"), set()) == "pebbles"
+    assert scene_name(Path("/o/point_cloud/iteration_7000/point_cloud.ply"), set()) == "o"
+    assert scene_name(Path("/x/a.ply"), {"a"}) == "a_2" and scene_name(Path("/x/3d-scan.ply"), set()) == "s_3d_scan"
+    c, s = tmp_path / "c.ply", tmp_path / "s.ply"
+    for p in (c, s):
+        write_ply(p, random_scene(50))
+    base = yaml.safe_load((ROOT / "config/config.yaml").read_text())
+    cfg = two_scene_config(base, c, s)
+    assert cfg["scenes"] == {"c": {"source": "ply", "path": str(c)}, "s": {"source": "ply", "path": str(s)}}
+    assert cfg["pairs"] == [["c", "s"]] and cfg["table1"]["pairs"] == [["c", "s"]]
+    assert set(cfg["experiments"]) == {"default", "selected"} and "sweeps" not in cfg
+    assert cfg["experiments"]["default"] == base["experiments"]["default"]  # the project's defaults
+    with pytest.raises(ValueError, match="transforms_train.json"):
+        two_scene_config(base, tmp_path, s)
+    with pytest.raises(FileNotFoundError, match="nope.ply"):
+        two_scene_config(base, tmp_path / "nope.ply", s)
+
+
+def test_run_writes_the_config_and_starts_the_workflow(tmp_path):
+    c, s = tmp_path / "blob.ply", tmp_path / "peb.ply"
+    write_ply(c, random_scene(300, seed=1))
+    write_ply(s, random_scene(300, seed=2))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "wast3d", "run", str(c), str(s), str(out), "-n"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    cfg = yaml.safe_load((out / "config/config.yaml").read_text())
+    assert cfg["pairs"] == [["blob", "peb"]]
+    for job in ("import_ply", "surface", "cluster", "register", "sinkhorn", "rescale", "evaluate", "table1"):
+        assert f"rule {job}:" in r.stdout, job
+    assert "results/stylize/blob__peb/default/final.ply" in r.stdout
+    bad = subprocess.run([sys.executable, "-m", "wast3d", "run", str(tmp_path / "missing.ply"), str(s), str(out)],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "missing.ply: file not found" in bad.stderr

@@ -1,0 +1,88 @@
+"""An interactive 3D viewer for Gaussian scenes in the browser, on viser (the viewer library of
+nerfstudio and gsplat's examples): ``wast3d view CONTENT.ply STYLE.ply RESULT.ply``.
+
+Scenes are shown one at a time, each scaled to the same size (a small style patch and a large
+content scene open in the same view); a dropdown in the page switches between them. viser renders the splats with its own WebGL rasterizer (view-independent colour: the DC term);
+``max_gaussians`` keeps the page responsive for large scenes by keeping the most opaque ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .gaussians import GaussianScene
+from .render import scene_bounds
+
+log = logging.getLogger(__name__)
+
+
+def splat_arrays(scene: GaussianScene, max_gaussians: int | None = None) -> dict[str, np.ndarray]:
+    """What viser's ``add_gaussian_splats`` takes: ``centers`` [N,3], ``covariances`` [N,3,3],
+    ``rgbs`` [N,3] in [0,1] (DC colour), ``opacities`` [N,1]; float32. With ``max_gaussians`` the
+    most opaque ones are kept."""
+    s = scene.to(dtype=torch.float32)
+    if max_gaussians is not None and len(s) > max_gaussians:
+        keep = torch.topk(s.opacities, max_gaussians).indices.sort().values
+        s = s.subset(keep)
+    f = lambda t: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)  # noqa: E731
+    return {"centers": f(s.means), "covariances": f(s.covariances), "rgbs": f(s.rgb.clamp(0, 1)),
+            "opacities": f(s.opacities[:, None])}
+
+
+def unit_placement(scene: GaussianScene) -> tuple[float, np.ndarray]:
+    """(scale, position) that shows ``scene`` at unit radius (robust bounds) centred at the origin:
+    a point p is shown at ``position + scale * p``, so scenes of any size open in the same view."""
+    centre, radius = scene_bounds(scene)
+    scale = 1.0 / max(float(radius), 1e-12)
+    return scale, -scale * centre.double().numpy()
+
+
+def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaussians: int | None = 300_000):
+    """Start a viser server showing the scenes in ``paths`` one at a time (a dropdown switches);
+    returns the server (it runs in threads).
+
+    One splat object is in the scene at a time: with viser 1.1.1 in headless Chromium (software
+    WebGL) only the last of several splat objects was drawn, so switching replaces the object.
+    """
+    import viser
+
+    from .ply import read_ply
+
+    scenes = {f"{i}: {Path(p).name}": read_ply(p) for i, p in enumerate(paths)}
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    server.scene.set_up_direction("+z")
+    server.initial_camera.look_at = (0.0, 0.0, 0.0)
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+    server.initial_camera.position = (0.0, -2.6, 1.3)
+    names = list(scenes)
+    pick = server.gui.add_dropdown("scene", options=names, initial_value=names[0])
+    stats = server.gui.add_markdown("")
+    current = {}
+
+    def show(_=None):
+        if "handle" in current:
+            current.pop("handle").remove()
+        scene = scenes[pick.value]
+        arr = splat_arrays(scene, max_gaussians)
+        scale, pos = unit_placement(scene)
+        current["handle"] = server.scene.add_gaussian_splats("/scene", **arr, scale=float(scale),
+                                                             position=tuple(float(v) for v in pos))
+        stats.content = f"{len(arr['centers']):,} of {len(scene):,} Gaussians shown"
+        log.info("view: %s: %d Gaussians shown (of %d)", pick.value, len(arr["centers"]), len(scene))
+
+    pick.on_update(show)
+    show()
+    return server
+
+
+def run_forever(server) -> None:  # pragma: no cover - interactive
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        server.stop()
