@@ -25,7 +25,7 @@ include: "workflow/rules/benchmarks.smk"
 
 rule all:
     input:
-        expand(f"{RESULTS}/scenes/{{scene}}/preview.png", scene=list(SCENES)),
+        expand(f"{RESULTS}/scenes/{{scene}}/preview.png", scene=USED_SCENES),
         [f"{RESULTS}/stylize/{c}__{s}/{e}/{f}" for c, s in PAIRS for e in RUN for f in ("preview.png", "losses.png")],
         f"{RESULTS}/tables/{TABLE}.csv",
         [f"{RESULTS}/render/pairs/{c}__{s}/{e}" for c, s in PAIRS for e in RUN],

@@ -81,6 +81,7 @@ TABLE1 = config.get("table1", {})
 TABLE1_PAIRS = [tuple(p) for p in TABLE1.get("pairs", PAIRS)]
 TABLE1_METHODS = TABLE1.get("methods", {"default": "WaSt-3D (ours)", "colour_ot": "colour transfer (OT)",
                                         "input": "content (no stylization)"})
+TABLE1_METHODS = {m: label for m, label in TABLE1_METHODS.items() if label is not None}
 for _e in EXPERIMENTS:
     if _e in BASELINES:
         raise ValueError(f"config: experiment name '{_e}' is reserved for a baseline ({', '.join(BASELINES)})")
@@ -124,8 +125,15 @@ def stage_json(params):
     return json.dumps(params, separators=(",", ":"), sort_keys=True)
 
 
+# scenes that no pair of the run or of Table 1 uses are defined but not built (a config merged over the
+# demo's, like config/lego.yaml, keeps the demo's scenes in `scenes`)
+USED_SCENES = [s for s in SCENES if any(s in p for p in PAIRS + TABLE1_PAIRS)]
+
 # say what is left out, and why
 for _name, _s in SCENES.items():
+    if _name not in USED_SCENES:
+        logger.info(f"scene '{_name}': left out entirely (in no pair)")
+        continue
     if _s["source"] == "procedural":
         logger.info(f"scene '{_name}': left out pretraining (generated as Gaussians)")
     elif _s["source"] == "ply":
