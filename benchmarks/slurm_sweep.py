@@ -41,10 +41,10 @@ CTLD_LOG = Path("/var/log/slurm/slurmctld.log")
 def run(profile: str, workdir: Path, sweep: str) -> dict:
     overlay = workdir / "small.yaml"
     overlay.write_text(yaml.safe_dump(SMALL))
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir),
-           "--profile", str(ROOT / "workflow/profiles" / profile),
-           "--configfile", str(ROOT / "config/config.yaml"), str(overlay), "--config", f"sweep={sweep}",
-           f"results/tables/{sweep}.csv"]
+    # the target goes first: --configfile and --config take several values
+    cmd = [sys.executable, "-m", "snakemake", f"results/tables/{sweep}.csv", "-s", str(ROOT / "Snakefile"),
+           "-d", str(workdir), "--profile", str(ROOT / "workflow/profiles" / profile),
+           "--configfile", str(ROOT / "config/config.yaml"), str(overlay), "--config", f"sweep={sweep}"]
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
