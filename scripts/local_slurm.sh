@@ -101,11 +101,12 @@ start() {
 }
 
 stop() {
-    local f
+    local f pid
     for f in "$RUN_DIR/slurmd.pid" "$RUN_DIR/slurmctld.pid" /run/munge/munged.pid; do
         if pid_alive "$f"; then
-            kill "$(cat "$f")"
-            echo "stopped $(basename "$f" .pid) (pid $(cat "$f"))"
+            pid=$(cat "$f")  # read before the kill: the daemon removes its pid file as it exits
+            kill "$pid"
+            echo "stopped $(basename "$f" .pid) (pid $pid)"
         fi
     done
     # wait for them to exit, so that a following start finds the ports free
