@@ -133,9 +133,9 @@ def cmd_run(sub):
         rc = subprocess.run(cmd).returncode
         if rc == 0 and not a.dry_run:
             res = a.out / "results"
-            log.info("run: done. Result: %s; renders: %s; Table 1: %s; view: wast3d view %s %s %s",
-                     res / "stylize" / f"{c}__{s}" / "default" / "final.ply", res / "render" / "pairs" / f"{c}__{s}",
-                     res / "tables" / "table1.md", a.content, a.style, res / "stylize" / f"{c}__{s}" / "default" / "final.ply")
+            final = res / "stylize" / f"{c}__{s}" / "default" / "final.ply"
+            log.info("run: done. Result: %s; renders: %s; Table 1: %s; view: wast3d view %s %s %s", final,
+                     res / "render" / "pairs" / f"{c}__{s}", res / "tables" / "table1.md", a.content, a.style, final)
         return rc
 
     return run

@@ -30,12 +30,13 @@ import math
 
 import numpy as np
 
+from .gaussians import rgb_to_sh_dc
+
 CHUNK = 256
 CHUNK_BOUNDS = ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
                 "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z")
 CHUNK_COLOUR = ("min_r", "min_g", "min_b", "max_r", "max_g", "max_b")
 PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
-SH_C0 = 0.28209479177387814
 
 
 def is_compressed(ply) -> bool:
@@ -128,6 +129,6 @@ def decode(ply) -> dict[str, np.ndarray]:
     f32 = lambda x: np.ascontiguousarray(x, dtype=np.float32)  # noqa: E731
     return {
         "means": f32(means), "log_scales": f32(log_scales), "quats": f32(quats),
-        "opacity_logits": f32(opacity), "sh_dc": f32((rgb - 0.5) / SH_C0), "sh_rest": f32(sh_rest),
+        "opacity_logits": f32(opacity), "sh_dc": f32(rgb_to_sh_dc(rgb)), "sh_rest": f32(sh_rest),
         "info": {"chunks": chunk.count, "colour_ranges": colour_ranges, "sh_rest": sh_rest.shape[1]},
     }

@@ -2,7 +2,8 @@
 nerfstudio and gsplat's examples): ``wast3d view CONTENT.ply STYLE.ply RESULT.ply``.
 
 Scenes are shown one at a time, each scaled to the same size (a small style patch and a large
-content scene open in the same view); a dropdown in the page switches between them. viser renders the splats with its own WebGL rasterizer (view-independent colour: the DC term);
+content scene open in the same view); a dropdown in the page switches between them. viser renders
+the splats with its own WebGL rasterizer (view-independent colour: the DC term);
 ``max_gaussians`` keeps the page responsive for large scenes by keeping the most opaque ones.
 """
 
