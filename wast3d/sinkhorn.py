@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -69,22 +69,26 @@ class SinkhornConfig:
 
 @dataclass
 class Potentials:
-    """Dual potentials of one pair at ``eps``: f_ba [N], g_ab [M], f_aa [N], g_bb [M]."""
+    """Dual potentials of K packed problems (rows of problem k at ``x_off[k]:x_off[k+1]``):
+    f_ba [R], g_ab [C], f_aa [R], g_bb [C]; per problem: eps [K] (float64), iterations [K],
+    converged [K] (every potential met the tolerance: f_aa may then be reused, ``x_fixed``)."""
 
     f_ba: torch.Tensor
     g_ab: torch.Tensor
     f_aa: torch.Tensor
     g_bb: torch.Tensor
-    eps: float
-    iterations: int = 0
-    converged: bool = False  # every potential met the tolerance: f_aa may then be reused (x_fixed)
+    eps: torch.Tensor
+    iterations: torch.Tensor
+    converged: torch.Tensor
+    x_off: torch.Tensor | None = None
+    y_off: torch.Tensor | None = None
 
 
 @dataclass
 class Result:
-    value: torch.Tensor  # scalar
-    grad_x: torch.Tensor | None  # [N, D]
-    grad_y: torch.Tensor | None  # [M, D]
+    value: torch.Tensor  # scalar (sinkhorn) or [K] (sinkhorn_batched)
+    grad_x: torch.Tensor | None  # [N, D] ([R, D] packed)
+    grad_y: torch.Tensor | None  # [M, D] ([C, D] packed)
     potentials: Potentials
     info: dict = field(default_factory=dict)
 
@@ -102,47 +106,143 @@ def diameter_of(x: torch.Tensor, y: torch.Tensor) -> float:
     return float((both.max(0).values - both.min(0).values).norm())
 
 
+# ---- ragged (packed) batches -----------------------------------------------------------------
+
+
+def segment_ids(off: torch.Tensor) -> torch.Tensor:
+    """off [K+1] (CSR offsets) -> [off[K]]: the problem of each packed row."""
+    return torch.repeat_interleave(torch.arange(len(off) - 1, device=off.device), off.diff())
+
+
+def segment_reduce(v: torch.Tensor, ids: torch.Tensor, K: int, op: str) -> torch.Tensor:
+    """Per-problem ``sum`` / ``amax`` / ``amin`` of v [R] or [R, D] -> [K] or [K, D]."""
+    out = v.new_zeros((K,) + v.shape[1:])
+    idx = ids.view(-1, *([1] * (v.ndim - 1))).expand_as(v)
+    return out.scatter_reduce_(0, idx, v, op, include_self=False)
+
+
+def diameters_of(x: torch.Tensor, x_off: torch.Tensor, y: torch.Tensor, y_off: torch.Tensor) -> list[float]:
+    """:func:`diameter_of` of every packed problem at once."""
+    K = len(x_off) - 1
+    xi, yi = segment_ids(x_off).to(x.device), segment_ids(y_off).to(y.device)
+    hi = torch.maximum(segment_reduce(x, xi, K, "amax"), segment_reduce(y, yi, K, "amax"))
+    lo = torch.minimum(segment_reduce(x, xi, K, "amin"), segment_reduce(y, yi, K, "amin"))
+    return (hi - lo).norm(dim=1).tolist()
+
+
+def _check_offsets(off: torch.Tensor | None, n: int, what: str) -> torch.Tensor:
+    if off is None:
+        return torch.tensor([0, n])
+    off = torch.as_tensor(off, dtype=torch.long).cpu()
+    if off.ndim != 1 or len(off) < 2 or int(off[0]) != 0 or int(off[-1]) != n or bool((off.diff() < 0).any()):
+        raise ValueError(f"sinkhorn: {what} must be CSR offsets [K+1] from 0 to {n}, non-decreasing")
+    return off
+
+
 # ---- soft-min backends ----------------------------------------------------------------------
+# f_i = -eps_k log sum_{j in problem k} exp(h_j - |x_i - y_j|^2 / (2 eps_k)) for the rows i of every
+# active problem k (the rows of the others are 0); optional barycentre sum_j w_ij y_j. x [R, D], y [C, D],
+# h [C]; eps a float or [K]; x_off, y_off [K+1] CSR offsets (None: one problem); active [A] problem ids.
 
 
-def softmin_torch(eps: float, x: torch.Tensor, y: torch.Tensor, h: torch.Tensor, bary: bool = False,
-                  chunk: int = 2048):
-    """f_i = -eps log sum_j exp(h_j - |x_i - y_j|^2 / (2 eps)); optional barycentre sum_j w_ij y_j.
+def softmin_torch(eps, x: torch.Tensor, y: torch.Tensor, h: torch.Tensor, bary: bool = False,
+                  x_off=None, y_off=None, active=None, budget: int | None = None):
+    """Reference and CUDA backend. One problem: chunks of rows (chunk x M memory). Several: the active
+    problems padded to a common size in groups of at most ``budget`` matrix entries (4 launches per
+    group instead of per problem), padded columns masked. Exponent clamped at -80 as in the C kernel."""
+    f = x.new_zeros(len(x))
+    b = x.new_zeros(x.shape) if bary else None
+    if x_off is None:
+        _softmin_dense(float(eps), x[None], y[None], h[None], None, f[None], b[None] if bary else None)
+        return (f, b) if bary else f
+    budget = budget or (2**26 if x.is_cuda else 2**22)
+    eps = torch.as_tensor(eps, dtype=x.dtype, device=x.device).reshape(-1)
+    active = torch.arange(len(x_off) - 1) if active is None else torch.as_tensor(active).cpu()
+    n, m = x_off.diff(), y_off.diff()
+    group: list[int] = []
 
-    x: [N, D], y: [M, D], h: [M]. Chunked over rows (chunk x M memory), exponent clamped at -80.
-    """
-    fs, bs = [], []
-    for xc in x.split(chunk):
-        s = h[None, :] - torch.cdist(xc, y).square() / (2 * eps)
-        m = s.max(dim=1, keepdim=True).values
-        e = torch.exp((s - m).clamp_min(-80.0))
-        z = e.sum(1)
-        fs.append(-eps * (m[:, 0] + z.log()))
+    def flush():
+        if not group:
+            return
+        if len(group) == 1:  # one problem: views, no padding
+            k = group[0]
+            xs, ys = slice(int(x_off[k]), int(x_off[k + 1])), slice(int(y_off[k]), int(y_off[k + 1]))
+            _softmin_dense(eps[k], x[None, xs], y[None, ys], h[None, ys], None, f[None, xs],
+                           b[None, xs] if bary else None)
+            group.clear()
+            return
+        ks = torch.tensor(group)
+        nmax, mmax = int(n[ks].max()), int(m[ks].max())
+        ri = torch.arange(nmax)
+        ci = torch.arange(mmax)
+        rmask, cmask = ri[None] < n[ks, None], ci[None] < m[ks, None]  # [G, nmax], [G, mmax]
+        rows = (x_off[ks, None] + ri[None]).where(rmask, x_off[ks, None]).to(x.device)
+        cols = (y_off[ks, None] + ci[None]).where(cmask, y_off[ks, None]).to(x.device)
+        cm = cmask.to(x.device)
+        hp = h[cols].masked_fill(~cm, -math.inf)
+        fo = x.new_empty(rows.shape)
+        bo = x.new_empty(rows.shape + (x.shape[1],)) if bary else None
+        _softmin_dense(eps[ks.to(x.device)], x[rows], y[cols], hp, cm, fo, bo)
+        keep = rmask.to(x.device)
+        f[rows[keep]] = fo[keep]
         if bary:
-            bs.append((e @ y) / z[:, None])
-    f = torch.cat(fs)
-    return (f, torch.cat(bs)) if bary else f
+            b[rows[keep]] = bo[keep]
+        group.clear()
+
+    for k in active.tolist():
+        if group and (len(group) + 1) * max(int(n[group + [k]].max()), 1) * max(int(m[group + [k]].max()), 1) > budget:
+            flush()
+        group.append(k)
+    flush()
+    return (f, b) if bary else f
 
 
-def softmin_native(eps: float, x: torch.Tensor, y: torch.Tensor, h: torch.Tensor, bary: bool = False):
+def _softmin_dense(eps, x, y, h, cmask, f_out, b_out, chunk_budget: int = 2**24):
+    """x [G, N, D], y [G, M, D], h [G, M] (-inf on padding), cmask [G, M] or None; eps float or [G].
+    Writes f_out [G, N] and b_out [G, N, D]; rows in chunks so that G x chunk x M <= chunk_budget."""
+    G, N, _ = x.shape
+    M = y.shape[1]
+    e_ = torch.as_tensor(eps, dtype=x.dtype, device=x.device).reshape(-1, 1, 1).expand(G, 1, 1)
+    chunk = max(1, chunk_budget // max(1, G * M))
+    for r0 in range(0, N, chunk):
+        xc = x[:, r0:r0 + chunk]
+        s = h[:, None, :] - torch.cdist(xc, y).square() / (2 * e_)
+        mx = s.amax(dim=2, keepdim=True)
+        e = torch.exp((s - mx).clamp_min(-80.0))
+        if cmask is not None:
+            e = e * cmask[:, None, :]
+        z = e.sum(2)
+        f_out[:, r0:r0 + chunk] = -e_[:, :, 0] * (mx[:, :, 0] + z.log())
+        if b_out is not None:
+            b_out[:, r0:r0 + chunk] = (e @ y) / z[:, :, None]
+
+
+def softmin_native(eps, x: torch.Tensor, y: torch.Tensor, h: torch.Tensor, bary: bool = False,
+                   x_off=None, y_off=None, active=None):
+    """The fused C kernel (``csrc/sinkhorn_cpu.c``), one call for every active problem (ragged)."""
+    import ctypes
+
     from . import _native
 
     lib = _native.load("sinkhorn_cpu")
     x, h = x.contiguous(), h.contiguous()
     yT = y.T.contiguous()
-    N, D = x.shape
+    R, D = x.shape
     if D > 16:
         raise ValueError("native soft-min supports at most 16 feature dimensions")
-    f = x.new_empty(N)
-    b = x.new_empty(N, D) if bary else None
-    sfx = "_f64" if x.dtype == torch.float64 else "_f32"
+    x_off = torch.tensor([0, R]) if x_off is None else x_off
+    y_off = torch.tensor([0, len(y)]) if y_off is None else y_off
+    xo, yo = x_off.to(torch.int64).contiguous(), y_off.to(torch.int64).contiguous()
+    e = torch.as_tensor(eps, dtype=x.dtype).reshape(-1).expand(len(xo) - 1).contiguous()
+    act = (torch.arange(len(xo) - 1) if active is None else torch.as_tensor(active)).to(torch.int64).contiguous()
+    f = x.new_zeros(R)
+    b = x.new_zeros(R, D) if bary else None
     P = _native.ptr
-    fn = getattr(lib, "softmin" + sfx)
-    import ctypes
-
-    real = ctypes.c_double if x.dtype == torch.float64 else ctypes.c_float
-    fn(P(x), P(yT), P(h), ctypes.c_int64(N), ctypes.c_int64(y.shape[0]), ctypes.c_int(D), real(eps),
-       ctypes.c_int(torch.get_num_threads()), P(f), P(b) if bary else ctypes.c_void_p(0))
+    fn = getattr(lib, "softmin_ragged" + ("_f64" if x.dtype == torch.float64 else "_f32"))
+    rc = fn(P(x), P(xo), P(yT), P(yo), ctypes.c_int64(len(y)), P(h), P(e), P(act), ctypes.c_int64(len(act)),
+            ctypes.c_int(D), ctypes.c_int(torch.get_num_threads()), P(f), P(b) if bary else ctypes.c_void_p(0))
+    if rc != 0:
+        raise MemoryError("native soft-min: could not allocate its work list")
     return (f, b) if bary else f
 
 
@@ -159,7 +259,6 @@ def pick_backend(cfg: SinkhornConfig, x: torch.Tensor) -> str:
 # ---- the solver -----------------------------------------------------------------------------
 
 
-@torch.no_grad()
 def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornConfig(),
              a: torch.Tensor | None = None, b: torch.Tensor | None = None, diameter: float | None = None,
              init: Potentials | None = None, grad_x: bool = False, grad_y: bool = True,
@@ -172,104 +271,202 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
     ``cfg.warm_iters`` updates are done at the final eps instead. ``x_fixed=True`` with ``init`` says
     x is the same as in the previous problem: its self-potential f_aa is reused, not updated (it
     depends on x alone, and grad_y does not involve it), saving a quarter of the work per iteration.
+    One problem of :func:`sinkhorn_batched`.
     """
     if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
         raise ValueError(f"sinkhorn: x [N, D] and y [M, D] must share D, got {list(x.shape)} and {list(y.shape)}")
-    if len(x) == 0 or len(y) == 0:
-        raise ValueError(f"sinkhorn: empty point cloud (N={len(x)}, M={len(y)})")
+    r = sinkhorn_batched(x, y, None, None, cfg, a, b, diameter=None if diameter is None else [diameter],
+                         init=init, grad_x=grad_x, grad_y=grad_y, x_fixed=x_fixed)
+    info = {k: (v.item() if torch.is_tensor(v) else v) for k, v in r.info.items()}
+    return Result(r.value[0], r.grad_x, r.grad_y, r.potentials, info)
+
+
+@torch.no_grad()
+def sinkhorn_batched(x: torch.Tensor, y: torch.Tensor, x_off: torch.Tensor | None, y_off: torch.Tensor | None,
+                     cfg: SinkhornConfig = SinkhornConfig(), a: torch.Tensor | None = None,
+                     b: torch.Tensor | None = None, blur: torch.Tensor | None = None, diameter=None,
+                     init: Potentials | None = None, grad_x: bool = False, grad_y: bool = True,
+                     x_fixed: bool = False) -> Result:
+    """K independent problems S_eps(x_k, y_k) in one solve (the clusters of eq. 9), packed without padding.
+
+    x: [R, D] rows of every problem, problem k at ``x_off[k]:x_off[k+1]`` (CSR offsets [K+1]; None:
+    one problem); y: [C, D] likewise with ``y_off``; a [R], b [C]: weights summing to 1 within each
+    problem (uniform if None); blur: [K] per-problem gamma (``cfg.blur`` if None); diameter: [K] or None.
+    Each problem follows exactly the steps :func:`sinkhorn` takes on it alone (its own eps schedule,
+    warm start, convergence test and iteration count); every soft-min of a step is one kernel call
+    over the problems still iterating. Returns values [K], packed gradients, packed potentials.
+    """
+    if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
+        raise ValueError(f"sinkhorn: x [R, D] and y [C, D] must share D, got {list(x.shape)} and {list(y.shape)}")
+    x_off, y_off = _check_offsets(x_off, len(x), "x_off"), _check_offsets(y_off, len(y), "y_off")
+    K = len(x_off) - 1
+    if len(y_off) - 1 != K:
+        raise ValueError(f"sinkhorn: x_off has {K} problems, y_off {len(y_off) - 1}")
+    n, m = x_off.diff(), y_off.diff()
+    if bool((n == 0).any() | (m == 0).any()):
+        k = int(((n == 0) | (m == 0)).nonzero()[0])
+        raise ValueError(f"sinkhorn: empty point cloud (problem {k}: N={int(n[k])}, M={int(m[k])})")
     if not (torch.isfinite(x).all() and torch.isfinite(y).all()):
         raise ValueError("sinkhorn: non-finite coordinates in the input")
     backend = pick_backend(cfg, x)
+    blur_k = torch.full((K,), cfg.blur, dtype=torch.float64) if blur is None else \
+        torch.as_tensor(blur, dtype=torch.float64).cpu().reshape(K)
+    if not bool(((blur_k > 0) & torch.isfinite(blur_k)).all()):
+        raise ValueError("sinkhorn: every problem's blur must be positive and finite")
     if backend == "geomloss":
-        return _sinkhorn_geomloss(x, y, cfg, a, b, diameter, grad_x, grad_y)
+        return _batched_geomloss(x, y, x_off, y_off, cfg, a, b, blur_k, diameter, grad_x, grad_y)
     sm = softmin_native if backend == "native" else softmin_torch
-    N, M = len(x), len(y)
-    a = x.new_full((N,), 1.0 / N) if a is None else a.to(x)
-    b = y.new_full((M,), 1.0 / M) if b is None else b.to(y)
+    dev = x.device
+    xid, yid = segment_ids(x_off).to(dev), segment_ids(y_off).to(dev)
+    xo, yo = x_off, y_off  # host-side: the kernels take them from there
+    a = (1.0 / n.to(x))[xid.cpu()].to(dev) if a is None else a.to(x)
+    b = (1.0 / m.to(y))[yid.cpu()].to(dev) if b is None else b.to(y)
     a_log, b_log = a.log(), b.log()
-    eps_final = cfg.blur**2
+    eps_final = blur_k.square()  # [K] float64, on the CPU (schedules are host-side)
     debias = cfg.debias
+    rows = lambda t, ids: t.to(device=dev, dtype=x.dtype)[ids]  # noqa: E731  per-problem -> per-row
 
-    def update(eps, f_ba, g_ab, f_aa, g_bb, avg: bool):
-        ft_ba = sm(eps, x, y, b_log + g_ab / eps)
-        # schedule levels: symmetric (Jacobi) update as geomloss; at the final eps: alternating
-        # (Gauss-Seidel) for the cross potentials, which converges about twice as fast
-        gt_ab = sm(eps, y, x, a_log + (f_ba if avg else ft_ba) / eps)
+    def soft(eps_k, q, qo, r, ro, h, act, bary=False):
+        return sm(eps_k.to(x.dtype), q, r, h, bary=bary, x_off=qo, y_off=ro, active=act)
+
+    def update(eps_k, st, act, avg, reuse):
+        """One Sinkhorn update of the problems in ``act`` [K] bool (the others keep their potentials).
+        avg [K]: symmetric (Jacobi, averaged) update as geomloss' schedule levels; else at the final
+        eps alternating (Gauss-Seidel) for the cross potentials, which converges about twice as fast."""
+        f_ba, g_ab, f_aa, g_bb = st
+        A = act.nonzero()[:, 0]
+        ex, ey = rows(eps_k, xid), rows(eps_k, yid)
+        avg_x, avg_y = rows(avg, xid).bool(), rows(avg, yid).bool()
+        ft_ba = soft(eps_k, x, xo, y, yo, b_log + g_ab / ey, A)
+        gt_ab = soft(eps_k, y, yo, x, xo, a_log + torch.where(avg_x, f_ba, ft_ba) / ex, A)
         if debias:
-            ft_aa = f_aa if reuse_aa else sm(eps, x, x, a_log + f_aa / eps)
-            gt_bb = sm(eps, y, y, b_log + g_bb / eps)
+            ft_aa = soft(eps_k, x, xo, x, xo, a_log + f_aa / ex, (act & ~reuse).nonzero()[:, 0])
+            ft_aa = torch.where(rows(reuse, xid).bool(), f_aa, ft_aa)
+            gt_bb = soft(eps_k, y, yo, y, yo, b_log + g_bb / ey, A)
         else:
             ft_aa, gt_bb = f_aa, g_bb
         half = lambda u, v: 0.5 * (u + v)  # noqa: E731
-        if avg:
-            return half(f_ba, ft_ba), half(g_ab, gt_ab), half(f_aa, ft_aa), half(g_bb, gt_bb)
-        return ft_ba, gt_ab, half(f_aa, ft_aa), half(g_bb, gt_bb)
+        new = (torch.where(avg_x, half(f_ba, ft_ba), ft_ba), torch.where(avg_y, half(g_ab, gt_ab), gt_ab),
+               half(f_aa, ft_aa), half(g_bb, gt_bb))
+        ax, ay = rows(act, xid).bool(), rows(act, yid).bool()
+        return tuple(torch.where(mask, u, v) for u, v, mask in zip(new, st, (ax, ay, ax, ay)))
 
-    iters = 0
-    if init is not None and abs(init.eps - eps_final) <= 1e-12 * eps_final and len(init.f_ba) == N \
-            and len(init.g_ab) == M:
-        f_ba, g_ab, f_aa, g_bb = init.f_ba, init.g_ab, init.f_aa, init.g_bb
-        schedule = [eps_final] * cfg.warm_iters
-        n_sched = 0
+    no = torch.zeros(K, dtype=torch.bool)
+    warm, reuse = no.clone(), no.clone()
+    if init is not None and len(init.f_ba) == len(x) and len(init.g_ab) == len(y) \
+            and (init.x_off is None or torch.equal(init.x_off.cpu(), x_off)) \
+            and (init.y_off is None or torch.equal(init.y_off.cpu(), y_off)):
+        ie = torch.as_tensor(init.eps, dtype=torch.float64).cpu().reshape(-1).expand(K)
+        warm = (ie - eps_final).abs() <= 1e-12 * eps_final
         # f_aa depends on x alone; reusing it is exact only once it has converged (a cold eps-scaling
         # solve leaves it off by as much as the divergence itself at large blur, and a stale f_aa
         # biases every later value: the reported loss went negative)
-        reuse_aa = x_fixed and not grad_x and init.converged
+        if x_fixed and not grad_x:
+            reuse = warm & torch.as_tensor(init.converged).cpu().reshape(-1).expand(K).bool()
+        st = (init.f_ba, init.g_ab, init.f_aa, init.g_bb)
     else:
-        d = diameter_of(x, y) if diameter is None else diameter
-        schedule = epsilon_schedule(d, cfg.blur, cfg.scaling)
-        n_sched = len(schedule)
-        reuse_aa = False  # a cold solve computes f_aa
-        schedule = schedule + [eps_final] * cfg.extra_iters
-        eps0 = schedule[0]
+        st = (x.new_zeros(len(x)), y.new_zeros(len(y)), x.new_zeros(len(x)), y.new_zeros(len(y)))
+    cold = ~warm
+    iters = torch.zeros(K, dtype=torch.long)
+    scheds, n_avg = [], []
+    diams = None
+    if cold.any() and diameter is None:
+        diams = diameters_of(x, xo, y, yo)
+    for k in range(K):
+        ef, bk = float(eps_final[k]), float(blur_k[k])
+        if cold[k]:
+            d = float(diameter[k]) if diameter is not None else diams[k]
+            s = epsilon_schedule(d, bk, cfg.scaling)
+            scheds.append(s + [ef] * cfg.extra_iters)
+            n_avg.append(len(s))
+        else:
+            scheds.append([ef] * cfg.warm_iters)
+            n_avg.append(0)
+    if cold.any():
         # initialization at the largest eps, from zero potentials (geomloss)
-        f_ba = sm(eps0, x, y, b_log)
-        g_ab = sm(eps0, y, x, a_log)
-        f_aa = sm(eps0, x, x, a_log) if debias else torch.zeros_like(f_ba)
-        g_bb = sm(eps0, y, y, b_log) if debias else torch.zeros_like(g_ab)
-        iters = 1
-    for k, eps in enumerate(schedule):
-        f_ba, g_ab, f_aa, g_bb = update(eps, f_ba, g_ab, f_aa, g_bb, avg=k < n_sched)
-        iters += 1
-    converged = False
+        eps0 = torch.tensor([s[0] if s else 1.0 for s in scheds], dtype=torch.float64)
+        C = cold.nonzero()[:, 0]
+        cx, cy = rows(cold, xid).bool(), rows(cold, yid).bool()
+        zero_x, zero_y = torch.zeros_like(a_log), torch.zeros_like(b_log)
+        init_f = (soft(eps0, x, xo, y, yo, b_log, C), soft(eps0, y, yo, x, xo, a_log, C),
+                  soft(eps0, x, xo, x, xo, a_log, C) if debias else zero_x,
+                  soft(eps0, y, yo, y, yo, b_log, C) if debias else zero_y)
+        st = tuple(torch.where(mask, u, v) for u, v, mask in zip(init_f, st, (cx, cy, cx, cy)))
+        iters += cold.long()
+    for r in range(max((len(s) for s in scheds), default=0)):
+        act = torch.tensor([r < len(s) for s in scheds])
+        eps_r = torch.tensor([s[r] if r < len(s) else 1.0 for s in scheds], dtype=torch.float64)
+        st = update(eps_r, st, act, torch.tensor([r < na for na in n_avg]), reuse)
+        iters += act.long()
+    converged = no.clone()
     if cfg.tol > 0:
-        # convergence test at the final eps: the largest change of any potential in one iteration,
-        # against tol * eps (floored at a few ulps of the potentials' magnitude for float32)
+        # convergence test at the final eps, per problem: the largest change of any potential in one
+        # iteration against tol * eps (floored at a few ulps of the potentials' magnitude for float32)
         floor = 8 * torch.finfo(x.dtype).eps
+        pending = ~no
         for _ in range(cfg.max_iters):
-            new = update(eps_final, f_ba, g_ab, f_aa, g_bb, avg=False)
-            change = max(float((u - v).abs().max()) for u, v in zip(new, (f_ba, g_ab, f_aa, g_bb)))
-            scale = max(float(t.abs().max()) for t in new)
-            f_ba, g_ab, f_aa, g_bb = new
-            iters += 1
-            if change <= max(cfg.tol * eps_final, floor * scale):
-                converged = True
+            if not pending.any():
                 break
+            new = update(eps_final, st, pending, no, reuse)
+            ids = (xid, yid, xid, yid)
+            change = torch.stack([segment_reduce((u - v).abs(), i, K, "amax") for u, v, i in zip(new, st, ids)]).amax(0)
+            scale = torch.stack([segment_reduce(u.abs(), i, K, "amax") for u, i in zip(new, ids)]).amax(0)
+            st = new
+            iters += pending.long()
+            done = pending & (change.double().cpu() <= torch.maximum(cfg.tol * eps_final, floor * scale.double().cpu()))
+            converged |= done
+            pending &= ~done
+    f_ba, g_ab, f_aa, g_bb = st
     # last extrapolation (full update), with barycentres where a gradient is wanted
-    eps = eps_final
+    ex, ey = rows(eps_final, xid), rows(eps_final, yid)
+    every = torch.arange(K)
 
-    def last(xq, yr, h, bary):
-        return sm(eps, xq, yr, h, bary=True) if bary else (sm(eps, xq, yr, h), None)
+    def last(q, qo, r, ro, h, bary, act=every):
+        return soft(eps_final, q, qo, r, ro, h, act, bary=True) if bary else (soft(eps_final, q, qo, r, ro, h, act), None)
 
-    f_ba_new, T_ab = last(x, y, b_log + g_ab / eps, grad_x)
-    g_ab_new, T_ba = last(y, x, a_log + f_ba / eps, grad_y)
+    f_ba_new, T_ab = last(x, xo, y, yo, b_log + g_ab / ey, grad_x)
+    g_ab_new, T_ba = last(y, yo, x, xo, a_log + f_ba / ex, grad_y)
     if debias:
-        f_aa_new, T_aa = (f_aa, None) if reuse_aa else last(x, x, a_log + f_aa / eps, grad_x)
-        g_bb_new, T_bb = last(y, y, b_log + g_bb / eps, grad_y)
-        value = (a * (f_ba_new - f_aa_new)).sum() + (b * (g_ab_new - g_bb_new)).sum()
+        f_aa_new, T_aa = last(x, xo, x, xo, a_log + f_aa / ex, grad_x, (~reuse).nonzero()[:, 0])
+        f_aa_new = torch.where(rows(reuse, xid).bool(), f_aa, f_aa_new)
+        g_bb_new, T_bb = last(y, yo, y, yo, b_log + g_bb / ey, grad_y)
+        value = segment_reduce(a * (f_ba_new - f_aa_new), xid, K, "sum") + \
+            segment_reduce(b * (g_ab_new - g_bb_new), yid, K, "sum")
         gx = a[:, None] * (T_aa - T_ab) if grad_x else None
         gy = b[:, None] * (T_bb - T_ba) if grad_y else None
     else:
         f_aa_new, g_bb_new = f_aa, g_bb
-        value = (a * f_ba_new).sum() + (b * g_ab_new).sum()
+        value = segment_reduce(a * f_ba_new, xid, K, "sum") + segment_reduce(b * g_ab_new, yid, K, "sum")
         gx = a[:, None] * (x - T_ab) if grad_x else None
         gy = b[:, None] * (y - T_ba) if grad_y else None
     iters += 1
-    pot = Potentials(f_ba_new, g_ab_new, f_aa_new, g_bb_new, eps_final, iters, converged)
-    if not torch.isfinite(value):
-        raise FloatingPointError(f"sinkhorn: non-finite divergence (N={N}, M={M}, eps={eps_final:g}, backend={backend})")
+    pot = Potentials(f_ba_new, g_ab_new, f_aa_new, g_bb_new, eps_final, iters, converged, x_off, y_off)
+    bad = ~torch.isfinite(value)
+    if bad.any():
+        k = int(bad.nonzero()[0])
+        raise FloatingPointError(f"sinkhorn: non-finite divergence (problem {k}: N={int(n[k])}, M={int(m[k])}, "
+                                 f"eps={float(eps_final[k]):g}, backend={backend})")
     return Result(value, gx, gy, pot, {"iterations": iters, "backend": backend, "converged": converged,
-                                       "reused_f_aa": reuse_aa})
+                                       "reused_f_aa": reuse})
+
+
+def _batched_geomloss(x, y, x_off, y_off, cfg, a, b, blur_k, diameter, grad_x, grad_y) -> Result:
+    """geomloss has no ragged batch: one call per problem (the paper's way), packed like the others."""
+    vals, gxs, gys = [], [], []
+    for k in range(len(x_off) - 1):
+        xs, ys = slice(int(x_off[k]), int(x_off[k + 1])), slice(int(y_off[k]), int(y_off[k + 1]))
+        ck = cfg if float(blur_k[k]) == cfg.blur else replace(cfg, blur=float(blur_k[k]))
+        r = _sinkhorn_geomloss(x[xs], y[ys], ck, None if a is None else a[xs], None if b is None else b[ys],
+                               None if diameter is None else float(diameter[k]), grad_x, grad_y)
+        vals.append(r.value.reshape(1))
+        gxs.append(r.grad_x)
+        gys.append(r.grad_y)
+    dummy = x.new_zeros(0)
+    K = len(vals)
+    pot = Potentials(dummy, dummy, dummy, dummy, blur_k.square(), torch.zeros(K, dtype=torch.long),
+                     torch.zeros(K, dtype=torch.bool))
+    return Result(torch.cat(vals), torch.cat(gxs) if grad_x else None, torch.cat(gys) if grad_y else None, pot,
+                  {"backend": "geomloss"})
 
 
 def _sinkhorn_geomloss(x, y, cfg, a, b, diameter, grad_x, grad_y) -> Result:
@@ -289,7 +486,9 @@ def _sinkhorn_geomloss(x, y, cfg, a, b, diameter, grad_x, grad_y) -> Result:
     gx = grads.pop(0) if grad_x else None
     gy = grads.pop(0) if grad_y else None
     dummy = x.new_zeros(0)
-    return Result(v.detach(), gx, gy, Potentials(dummy, dummy, dummy, dummy, cfg.blur**2), {"backend": "geomloss"})
+    pot = Potentials(dummy, dummy, dummy, dummy, torch.tensor([cfg.blur**2], dtype=torch.float64),
+                     torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.bool))
+    return Result(v.detach(), gx, gy, pot, {"backend": "geomloss"})
 
 
 class SinkhornDivergence(torch.autograd.Function):

@@ -20,8 +20,9 @@ For cluster i, in the registered (style) frame:
   luminance offset per Gaussian, or three RGB offsets), with Adam (``optimizer: adam``) or by the
   Sinkhorn gradient flow (``optimizer: flow``: plain steps along ``-M grad``, i.e. towards each
   point's transport target); the content is fixed.
-  Clusters are independent terms of eq. 9 and Adam is per-parameter, so optimizing them one after
-  another is the same as optimizing the sum;
+  Clusters are independent terms of eq. 9 and both optimizers act per coordinate, so optimizing them
+  together (one packed Sinkhorn solve per step over ``batch`` clusters, :func:`stylize_clusters`) is
+  the same as optimizing the sum, and the same as one cluster after another;
 - colour update: a luminance offset dY is added to all three channels, ``rgb' = rgb + dY``: the
   luma changes by exactly dY (the weights sum to 1) and the chroma (differences between channels), so
   the hue, is kept. In SH terms only the DC coefficients change, ``f_dc' = f_dc + dY / SH_C0``;
@@ -83,6 +84,7 @@ class StylizeConfig:
     dtype: str = "float32"
     device: str = "auto"  # "auto": CUDA when available
     blur_units: str = "cluster"  # "cluster": gamma relative to each cluster's radius; "scene": see above
+    batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
     sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
 
     def __post_init__(self):
@@ -92,28 +94,35 @@ class StylizeConfig:
             raise ValueError(f"stylize.loss must be 'sinkhorn' or 'arap', got '{self.loss}'")
         if self.optimizer not in ("adam", "flow"):
             raise ValueError(f"stylize.optimizer must be 'adam' or 'flow', got '{self.optimizer}'")
+        if self.batch < 0:
+            raise ValueError(f"stylize.batch must be >= 0 (0: every cluster in one solve), got {self.batch}")
         if self.blur_units not in BLUR_UNITS:
             raise ValueError(f"stylize.blur_units must be one of {BLUR_UNITS}, got '{self.blur_units}'")
         if isinstance(self.sinkhorn, dict):
             self.sinkhorn = SinkhornConfig(**{**SINKHORN_DEFAULTS, **self.sinkhorn})
 
 
-def normalize_pair(content: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """Centre [3] and radius of a mapped content cluster [N, 3]; the radius is floored so that a
-    one-point cluster does not divide by zero."""
+def normalize_pair(content: torch.Tensor, style: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
+    """Centre [3] and radius of a mapped content cluster [N, 3]. A cluster of one point (or of
+    coincident points) has no radius: then the style's [M, 3] distance to the centre is used, and
+    failing that 1e-9 (dividing by ~0 made a one-point cluster's divergence ~1e17 and froze it)."""
     c = content.mean(0)
     r = float((content - c).norm(dim=1).max()) if len(content) > 1 else 0.0
+    if r <= 1e-9 and style is not None and len(style):
+        r = float((style.to(c) - c).norm(dim=1).max())
     return c, max(r, 1e-9)
 
 
-def cluster_blur(cfg: StylizeConfig, mapped: torch.Tensor, scene_radius: float, mean_scale: float) -> float:
+def cluster_blur(cfg: StylizeConfig, mapped: torch.Tensor, scene_radius: float, mean_scale: float,
+                 style: torch.Tensor | None = None) -> float:
     """gamma of one cluster in the units of :func:`normalize_pair` (the mapped cluster's radius).
 
     mapped: [N, 3] the content cluster in the style frame; scene_radius: the content scene's radius;
-    mean_scale: the mean of the cluster's registration scales s_i."""
+    mean_scale: the mean of the cluster's registration scales s_i; style: [M, 3] its style Gaussians
+    (the radius of a one-point cluster, see :func:`normalize_pair`)."""
     if cfg.blur_units == "cluster":
         return cfg.sinkhorn.blur
-    _, r = normalize_pair(mapped.double())
+    _, r = normalize_pair(mapped.double(), None if style is None else style.double())
     return cfg.sinkhorn.blur * scene_radius * mean_scale / r
 
 
@@ -131,22 +140,58 @@ class ClusterResult:
     positions: torch.Tensor  # [M, 3] optimized, style frame
     colour_offset: torch.Tensor  # [M, 0|1|3]
     losses: list[float]
-    seconds: float
+    seconds: float  # this cluster's share of its batch's time (by its work, N M + M^2)
+
+
+@dataclass
+class ClusterPair:
+    """One term of eq. 9: content cluster x_* [N, 3] in the style frame, its style Gaussians y_* [M, 3],
+    and its gamma in normalized units (:func:`cluster_blur`)."""
+
+    x_pos: torch.Tensor
+    x_rgb: torch.Tensor
+    y_pos: torch.Tensor
+    y_rgb: torch.Tensor
+    blur: float
 
 
 def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tensor, y_rgb: torch.Tensor,
                     cfg: StylizeConfig) -> ClusterResult:
-    """One term of eq. 9. x_*: content cluster in the style frame [N,3]; y_*: its style Gaussians [M,3]."""
+    """One term of eq. 9 alone (the per-pair path). x_*: content cluster in the style frame [N,3]; y_*:
+    its style Gaussians [M,3]."""
+    return stylize_clusters([ClusterPair(x_pos, x_rgb, y_pos, y_rgb, cfg.sinkhorn.blur)], cfg)[0]
+
+
+def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False) -> list[ClusterResult]:
+    """Terms of eq. 9 optimized together: one packed (ragged) Sinkhorn solve per step over all of them
+    (:func:`wast3d.sinkhorn.sinkhorn_batched`), each cluster normalized by :func:`normalize_pair`.
+
+    The terms are independent and both optimizers act per coordinate, so this is the same computation
+    as one :func:`stylize_cluster` per pair, with 4 kernel calls per Sinkhorn iteration instead of 4 per
+    cluster (what makes 400 clusters cheap on a GPU, and keeps both cores busy on small clusters)."""
+    from tqdm import tqdm
+
+    from .sinkhorn import segment_ids, sinkhorn_batched
+
     t0 = time.perf_counter()
     dt = torch.float64 if cfg.dtype == "float64" else torch.float32
     dev = resolve_device(cfg.device)
-    c, r = normalize_pair(x_pos.double())
-    xn = ((x_pos.double() - c) / r).to(dev, dt)
-    yn = ((y_pos.double() - c) / r).to(dev, dt)
     w = cfg.colour_weight
-    xf = torch.cat([xn, w * colour_features(x_rgb, cfg.features).to(dev, dt)], 1)
-    y0c = colour_features(y_rgb, cfg.features).to(dev, dt)
-    Y = yn.clone().requires_grad_(True)
+    xs, ys, y0cs, norms = [], [], [], []
+    for pr in pairs:
+        c, r = normalize_pair(pr.x_pos.double(), pr.y_pos.double())
+        norms.append((c, r))
+        xn = ((pr.x_pos.double() - c) / r).to(dev, dt)
+        xs.append(torch.cat([xn, w * colour_features(pr.x_rgb, cfg.features).to(dev, dt)], 1))
+        ys.append(((pr.y_pos.double() - c) / r).to(dev, dt))
+        y0cs.append(colour_features(pr.y_rgb, cfg.features).to(dev, dt))
+    n = torch.tensor([len(t) for t in xs])
+    m = torch.tensor([len(t) for t in ys])
+    x_off, y_off = torch.cat([n.new_zeros(1), n.cumsum(0)]), torch.cat([m.new_zeros(1), m.cumsum(0)])
+    xf, y0c = torch.cat(xs), torch.cat(y0cs)
+    yid = segment_ids(y_off).to(dev)
+    blur = torch.tensor([pr.blur for pr in pairs], dtype=torch.float64)
+    Y = torch.cat(ys).clone().requires_grad_(True)
     dC = torch.zeros_like(y0c).requires_grad_(True)
     groups = [{"params": [Y], "lr": cfg.lr}]
     if dC.shape[1]:
@@ -157,34 +202,51 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
     # (debiased, blurred) transport target: a displacement field smooth at the scale gamma, so that
     # the style's elements move as wholes
     opt = torch.optim.Adam(groups) if cfg.optimizer == "adam" else torch.optim.SGD(groups)
-    flow = float(len(Y)) if cfg.optimizer == "flow" else 1.0
-    losses = []
+    flow = m.to(dev, dt)[yid][:, None] if cfg.optimizer == "flow" else None  # M of each row's cluster
+    losses: list[list[float]] = [[] for _ in pairs]
     pot = None
-    arap = _ArapState(yn, cfg.arap_k) if cfg.loss == "arap" else None
-    for it in range(cfg.iterations):
+    araps = [_ArapState(yn, cfg.arap_k) for yn in ys] if cfg.loss == "arap" else None
+    steps = tqdm(range(cfg.iterations), desc=f"stylize steps ({len(pairs)} clusters)", mininterval=2.0,
+                 disable=not progress)
+    for it in steps:
         opt.zero_grad(set_to_none=True)
         yf = torch.cat([Y, w * (y0c + dC)], 1)
-        if arap is None:
-            res = sinkhorn(xf, yf.detach(), cfg.sinkhorn, init=pot if cfg.warm_start else None, x_fixed=True)
+        if araps is None:
+            res = sinkhorn_batched(xf, yf.detach(), x_off, y_off, cfg.sinkhorn, blur=blur,
+                                   init=pot if cfg.warm_start else None, x_fixed=True)
             pot = res.potentials
             gy = res.grad_y
             Y.grad = gy[:, :3].contiguous()
             if dC.shape[1]:
                 dC.grad = (w * gy[:, 3:]).contiguous()
-            losses.append(float(res.value))
+            vals = res.value.tolist()
         else:
-            loss = arap.loss(xf, yf, Y, cfg.arap_weight)
-            loss.backward()
-            losses.append(float(loss))
-        if flow != 1.0:
+            terms = [arap.loss(xf[x_off[k]:x_off[k + 1]], yf[y_off[k]:y_off[k + 1]], Y[y_off[k]:y_off[k + 1]],
+                               cfg.arap_weight) for k, arap in enumerate(araps)]
+            torch.stack(terms).sum().backward()
+            vals = [float(t.detach()) for t in terms]
+        for k, v in enumerate(vals):
+            losses[k].append(v)
+        if flow is not None:
             Y.grad.mul_(flow)
             if dC.grad is not None:
                 dC.grad.mul_(flow)
-        if not (torch.isfinite(Y.grad).all() and (dC.grad is None or torch.isfinite(dC.grad).all())):
-            raise FloatingPointError(f"stylize: non-finite gradient at iteration {it}")
+        bad = ~torch.isfinite(Y.grad).all(1)
+        if dC.grad is not None:
+            bad |= ~torch.isfinite(dC.grad).all(1)
+        if bad.any():
+            k = int(yid[bad.nonzero()[0, 0]])
+            raise FloatingPointError(f"stylize: non-finite gradient at iteration {it} (cluster {k} of the batch)")
         opt.step()
-    pos = Y.detach().cpu().double() * r + c
-    return ClusterResult(pos.to(y_pos.dtype), dC.detach().cpu().to(y_rgb.dtype), losses, time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    work = (n * m + m * m).double()
+    out = []
+    for k, (pr, (c, r)) in enumerate(zip(pairs, norms)):
+        sl = slice(int(y_off[k]), int(y_off[k + 1]))
+        pos = Y.detach()[sl].cpu().double() * r + c
+        out.append(ClusterResult(pos.to(pr.y_pos.dtype), dC.detach()[sl].cpu().to(pr.y_rgb.dtype), losses[k],
+                                 seconds * float(work[k] / work.sum())))
+    return out
 
 
 class _ArapState:
@@ -226,18 +288,27 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()
-    parts, before_parts, labs, curves, secs = [], [], [], [], []
-    it = tqdm(range(K), desc="stylize clusters", disable=not progress, mininterval=2.0)
-    for i in it:
+    todo, pairs = [], []
+    for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
         m = labels == i
         if len(sel) == 0 or not bool(m.any()):
             log.warning("stylize: cluster %d is empty (content %d, style %d); skipped", i, int(m.sum()), len(sel))
             continue
         sub = style.subset(sel)
-        blur = cluster_blur(cfg, mapped[m], scene_radius, float(reg.s[i].mean()))
-        ccfg = cfg if blur == cfg.sinkhorn.blur else replace(cfg, sinkhorn=replace(cfg.sinkhorn, blur=blur))
-        res = stylize_cluster(mapped[m], c_rgb[m], sub.means.float(), sub.rgb.float(), ccfg)
+        todo.append((i, sel, sub))
+        pairs.append(ClusterPair(mapped[m], c_rgb[m], sub.means.float(), sub.rgb.float(),
+                                 cluster_blur(cfg, mapped[m], scene_radius, float(reg.s[i].mean()),
+                                              sub.means)))
+    if not pairs:
+        raise ValueError("stylize: no non-empty cluster")
+    size = cfg.batch or len(pairs)
+    results: list[ClusterResult] = []
+    batches = range(0, len(pairs), size)
+    for b0 in tqdm(batches, desc="stylize cluster batches", disable=not progress or len(batches) == 1):
+        results += stylize_clusters(pairs[b0:b0 + size], cfg, progress=progress and len(batches) == 1)
+    parts, before_parts, labs, curves, secs = [], [], [], [], []
+    for (i, sel, sub), res in zip(todo, results):
         if res.losses and cfg.loss == "sinkhorn" and min(res.losses) < -1e-6 * abs(res.losses[0]):
             log.warning("stylize: cluster %d: divergence went negative (%.3g; first %.3g): the solve is not "
                         "converged (raise sinkhorn.max_iters or lower sinkhorn.tol)", i, min(res.losses), res.losses[0])
@@ -249,8 +320,4 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         parts.append(out.transform(rotation=reg.R[i].T.to(out.dtype), translation=reg.t[i].to(out.dtype),
                                    scale=(1.0 / reg.s[i]).to(out.dtype)))
         labs.append(lab)
-        if progress:
-            it.set_postfix(loss=f"{res.losses[-1]:.3g}" if res.losses else "-")
-    if not parts:
-        raise ValueError("stylize: no non-empty cluster")
     return GaussianScene.concat(parts), torch.cat(labs), curves, secs, torch.cat(before_parts).float()
