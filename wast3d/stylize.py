@@ -249,6 +249,18 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     return out
 
 
+def stylize_in_batches(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False) -> list[ClusterResult]:
+    """:func:`stylize_clusters` over groups of ``cfg.batch`` pairs (0: all in one group)."""
+    from tqdm import tqdm
+
+    size = cfg.batch or len(pairs)
+    batches = range(0, len(pairs), size)
+    results: list[ClusterResult] = []
+    for b0 in tqdm(batches, desc="stylize cluster batches", disable=not progress or len(batches) == 1):
+        results += stylize_clusters(pairs[b0:b0 + size], cfg, progress=progress and len(batches) == 1)
+    return results
+
+
 class _ArapState:
     """Chamfer + as-rigid-as-possible energy over a fixed kNN graph of the initial style positions."""
 
@@ -281,8 +293,6 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     """Run eq. 9 over all clusters. Returns (stylized scene in the content frame, per-cluster label of
     each output Gaussian [sum |D_i|], list of per-cluster loss curves, list of seconds, the positions
     before optimization mapped back to the content frame [sum |D_i|, 3], for the scale readjustment)."""
-    from tqdm import tqdm
-
     K = len(offsets) - 1
     cm = content.means.double()
     scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
@@ -302,11 +312,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
                                               sub.means)))
     if not pairs:
         raise ValueError("stylize: no non-empty cluster")
-    size = cfg.batch or len(pairs)
-    results: list[ClusterResult] = []
-    batches = range(0, len(pairs), size)
-    for b0 in tqdm(batches, desc="stylize cluster batches", disable=not progress or len(batches) == 1):
-        results += stylize_clusters(pairs[b0:b0 + size], cfg, progress=progress and len(batches) == 1)
+    results = stylize_in_batches(pairs, cfg, progress)
     parts, before_parts, labs, curves, secs = [], [], [], [], []
     for (i, sel, sub), res in zip(todo, results):
         if res.losses and cfg.loss == "sinkhorn" and min(res.losses) < -1e-6 * abs(res.losses[0]):

@@ -1,17 +1,26 @@
 /* Shared by the C kernels: a branch-free exp that vectorizes, the REAL-generic dispatch and naming.
  *
- * fast_expf(x) for x in [-80, 0]: 2^k * p(r), r = x - k ln2 in [-ln2/2, ln2/2] (Cody-Waite), degree-6
- * polynomial; relative error < 2e-7. Callers clamp the argument: below about -87 float exp produces
- * denormals (10-40x slower), and at -80 the value (2e-35) is already negligible. */
+ * fast_expf(x) for x in [-80, 0]: 2^k * p(r), k = round(x / ln2) by the 1.5 * 2^23 shifter (adding it
+ * leaves k in the low mantissa bits: no floorf, no float->int conversion), r = x - k ln2 in
+ * [-ln2/2, ln2/2] (Cody-Waite), degree-6 polynomial, 2^k built in the exponent bits; relative error
+ * < 1e-7 on [-80, 0] (tests/test_native.py). The bit casts are memcpy's, which GCC vectorizes; the
+ * earlier floorf + union version compiled to scalar code inside `omp simd` loops (4.8 ns per exp
+ * instead of 0.7 here). Callers clamp the argument: below about -87 float exp produces denormals
+ * (10-40x slower), and at -80 the value (2e-35) is already negligible. */
 #ifndef WAST3D_FASTMATH_H
 #define WAST3D_FASTMATH_H
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
 static inline float fast_expf(float x) {
     const float log2e = 1.44269504088896341f, c1 = 0.693359375f, c2 = -2.12194440e-4f;
-    float k = floorf(x * log2e + 0.5f);
-    float r = x - k * c1 - k * c2;
+    const float shifter = 12582912.0f; /* 1.5 * 2^23 */
+    float kf = x * log2e + shifter;
+    int32_t ki;
+    memcpy(&ki, &kf, sizeof ki);
+    kf -= shifter;
+    const float r = x - kf * c1 - kf * c2;
     float p = 1.9875691500E-4f;
     p = p * r + 1.3981999507E-3f;
     p = p * r + 8.3334519073E-3f;
@@ -19,9 +28,10 @@ static inline float fast_expf(float x) {
     p = p * r + 1.6666665459E-1f;
     p = p * r + 5.0000001201E-1f;
     p = p * r * r + r + 1.0f;
-    union { int32_t i; float f; } u;
-    u.i = ((int32_t)k + 127) << 23;
-    return p * u.f;
+    const int32_t bits = (ki - 0x4B400000 + 127) * (1 << 23); /* (k + 127) << 23 */
+    float scale;
+    memcpy(&scale, &bits, sizeof scale);
+    return p * scale;
 }
 
 static inline double exp_real_d(double x) { return exp(x); }

@@ -114,3 +114,9 @@ int FN(softmin_ragged)(const REAL *x, const int64_t *xoff, const REAL *yT, const
     free(first);
     return 0;
 }
+
+/* out[i] = EXPR(x[i]) (the kernels' exp: fast_expf for float, libm for double); for the accuracy test */
+void FN(exp_array)(const REAL *x, int64_t n, REAL *out) {
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) out[i] = EXPR(x[i]);
+}
