@@ -117,6 +117,23 @@ def test_one_problem_is_the_plain_softmin():
     assert torch.allclose(f1, ref, rtol=1e-12, atol=1e-12)
 
 
+def test_float32_kernel_at_lane_and_block_edges():
+    """The float32 soft-min runs its exp-and-sum 8 lanes at a time over blocks of 256 columns: column
+    counts around both edges (a lane's tail masked to zero, blocks not filled), packed at unaligned
+    offsets, against the float64 torch soft-min. A lane past a problem's end that counted would add
+    exp(-80)-sized terms, or the next problem's columns, and show here as a value or barycentre error."""
+    cols = [1, 7, 8, 9, 255, 256, 257, 513]
+    xs, ys = problems([(13, m) for m in cols], d=4)
+    x, xo = pack(xs)
+    y, yo = pack(ys)
+    h = torch.randn(len(y), dtype=D64, generator=torch.Generator().manual_seed(5))
+    eps = torch.linspace(0.02, 0.5, len(cols), dtype=D64)
+    f_ref, b_ref = softmin_torch(eps, x, y, h, bary=True, x_off=xo, y_off=yo)
+    f32, b32 = softmin_native(eps.float(), x.float(), y.float(), h.float(), bary=True, x_off=xo, y_off=yo)
+    assert float((f32.double() - f_ref).abs().max()) < 2e-5
+    assert float((b32.double() - b_ref).abs().max()) < 2e-5 * float(y.abs().max())
+
+
 def test_bad_batches_are_named():
     xs, ys = problems([(5, 6), (4, 7)])
     x, xo = pack(xs)

@@ -60,12 +60,31 @@ static inline void FN(softmin_row)(const REAL *xi_, const REAL *yT, int64_t C, c
             run_max = bmax;
         }
         REAL acc = 0;
+        if (sizeof(REAL) == sizeof(float)) {  /* float: 8 lanes at a time (fastmath.h); s[] holds BLOCK */
+            const int64_t nv = (nb + 7) & ~(int64_t)7;
+            const float rm = (float)run_max;
+            wast3d_vf8 acc8 = {0};
+            for (int64_t j = nb; j < nv; ++j) s[j] = run_max;  /* defined lanes, zeroed below */
+            for (int64_t j = 0; j < nv; j += 8) {
+                wast3d_vf8 a;
+                memcpy(&a, (const float *)s + j, sizeof a);
+                wast3d_vf8 e = fast_expf8(vmax_f8(a - rm, (float)CLAMP_LO));
+                if (j + 8 > nb) {  /* lanes past the block's end (never read from y) count zero */
+                    const wast3d_vi8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
+                    e = (wast3d_vf8)((wast3d_vi8)e & (lane < (int32_t)(nb - j)));
+                }
+                memcpy((float *)s + j, &e, sizeof e);
+                acc8 += e;
+            }
+            for (int l = 0; l < 8; ++l) acc += acc8[l];
+        } else {
 #pragma omp simd reduction(+ : acc)
-        for (int64_t j = 0; j < nb; ++j) {
-            REAL a = s[j] - run_max;
-            a = a < (REAL)CLAMP_LO ? (REAL)CLAMP_LO : a;
-            s[j] = EXPR(a);
-            acc += s[j];
+            for (int64_t j = 0; j < nb; ++j) {
+                REAL a = s[j] - run_max;
+                a = a < (REAL)CLAMP_LO ? (REAL)CLAMP_LO : a;
+                s[j] = EXPR(a);
+                acc += s[j];
+            }
         }
         run_sum += acc;
         if (bary) {
@@ -115,8 +134,16 @@ int FN(softmin_ragged)(const REAL *x, const int64_t *xoff, const REAL *yT, const
     return 0;
 }
 
-/* out[i] = EXPR(x[i]) (the kernels' exp: fast_expf for float, libm for double); for the accuracy test */
+/* out[i] = exp(x[i]) as the kernels compute it (fast_expf8 / fast_expf for float, libm for double); for the
+ * accuracy test */
 void FN(exp_array)(const REAL *x, int64_t n, REAL *out) {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) out[i] = EXPR(x[i]);
+    int64_t i = 0;
+    if (sizeof(REAL) == sizeof(float))  /* the 8-lane exp the soft-min uses, then the scalar one */
+        for (; i + 8 <= n; i += 8) {
+            wast3d_vf8 v;
+            memcpy(&v, (const float *)x + i, sizeof v);
+            v = fast_expf8(v);
+            memcpy((float *)out + i, &v, sizeof v);
+        }
+    for (; i < n; ++i) out[i] = EXPR(x[i]);
 }
