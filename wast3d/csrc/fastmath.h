@@ -18,6 +18,11 @@
 #include <stdint.h>
 #include <string.h>
 
+/* exp(r) on [-ln2/2, ln2/2], degree 6 (Horner); r a float or a vector of floats */
+#define EXP_POLY(r) \
+    ((((((1.9875691500E-4f * (r) + 1.3981999507E-3f) * (r) + 8.3334519073E-3f) * (r) + 4.1665795894E-2f) * (r) + \
+       1.6666665459E-1f) * (r) + 5.0000001201E-1f) * (r) * (r) + (r) + 1.0f)
+
 static inline float fast_expf(float x) {
     const float log2e = 1.44269504088896341f, c1 = 0.693359375f, c2 = -2.12194440e-4f;
     const float shifter = 12582912.0f; /* 1.5 * 2^23 */
@@ -26,13 +31,7 @@ static inline float fast_expf(float x) {
     memcpy(&ki, &kf, sizeof ki);
     kf -= shifter;
     const float r = x - kf * c1 - kf * c2;
-    float p = 1.9875691500E-4f;
-    p = p * r + 1.3981999507E-3f;
-    p = p * r + 8.3334519073E-3f;
-    p = p * r + 4.1665795894E-2f;
-    p = p * r + 1.6666665459E-1f;
-    p = p * r + 5.0000001201E-1f;
-    p = p * r * r + r + 1.0f;
+    const float p = EXP_POLY(r);
     const int32_t bits = (ki - 0x4B400000 + 127) * (1 << 23); /* (k + 127) << 23 */
     float scale;
     memcpy(&scale, &bits, sizeof scale);
@@ -49,13 +48,7 @@ static inline wast3d_vf8 fast_expf8(wast3d_vf8 x) {
     const wast3d_vi8 ki = (wast3d_vi8)kf;
     kf -= shifter;
     const wast3d_vf8 r = x - kf * c1 - kf * c2;
-    wast3d_vf8 p = (wast3d_vf8){0} + 1.9875691500E-4f;
-    p = p * r + 1.3981999507E-3f;
-    p = p * r + 8.3334519073E-3f;
-    p = p * r + 4.1665795894E-2f;
-    p = p * r + 1.6666665459E-1f;
-    p = p * r + 5.0000001201E-1f;
-    p = p * r * r + r + 1.0f;
+    const wast3d_vf8 p = EXP_POLY(r);
     const wast3d_vi8 bits = (ki - 0x4B400000 + 127) * (1 << 23);
     return p * (wast3d_vf8)bits;
 }
