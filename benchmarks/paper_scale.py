@@ -108,21 +108,37 @@ def main() -> None:
 
 
 def picture(df, out: Path) -> None:
+    """One row per stage, a bar per style size (the lego's own stages once), seconds on a log axis."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     d = df[~df.stage.str.startswith("workflow wall")].copy()
-    d["label"] = [s if n != n or n is None else f"{s}\n{int(n) // 1000}k" for s, n in zip(d.stage, d.style_gaussians)]
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.barh(d.label, d.seconds)
-    for y, (s, mb) in enumerate(zip(d.seconds, d.peak_mb)):
-        ax.annotate(f"{s:.0f} s, {mb:.0f} MB", (s, y), va="center", fontsize=7)
+    d["short"] = d.stage.str.replace(r" \(sum of the stages above\)", "", regex=True)
+    stages = list(dict.fromkeys(d.short))
+    sizes = sorted(int(n) for n in d.style_gaussians.dropna().unique())
+    fig, ax = plt.subplots(figsize=(9, 0.3 * len(stages) * max(1, len(sizes)) + 1.5))
+    h = 0.8 / max(1, len(sizes))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for y, st in enumerate(stages):
+        g = d[d.short == st]
+        for _, r in g.iterrows():
+            i = sizes.index(int(r.style_gaussians)) if r.style_gaussians == r.style_gaussians else None
+            off = 0 if i is None else (i - (len(sizes) - 1) / 2) * h
+            c = "grey" if i is None else colours[i]
+            ax.barh(y + off, r.seconds, h, color=c)
+            ax.annotate(f"{r.seconds:.0f} s, {r.peak_mb:.0f} MB", (r.seconds, y + off), va="center", fontsize=7)
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color=colours[i], label=f"{n // 1000}k style Gaussians") for i, n in enumerate(sizes)]
+    handles.append(Patch(color="grey", label="the lego's own stages (shared)"))
+    ax.set_yticks(range(len(stages)), stages, fontsize=8)
     ax.set_xscale("log")
-    ax.set_xlabel("seconds (log)")
+    ax.set_xlabel("seconds (log), 2 CPU threads")
     ax.set_title("paper scale: lego x pebbles, 400 clusters, 100 steps, per stage", fontsize=9)
     ax.invert_yaxis()
+    ax.legend(handles=handles, fontsize=7, loc="upper right", bbox_to_anchor=(1.0, -0.08), ncol=3)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
 
