@@ -62,11 +62,14 @@ def slurm_intervals(ids: list[int]) -> pd.DataFrame:
     stamp = r"\[([\d\-T:.]+)\]"
     rows = []
     for i in ids:
-        a = re.search(rf"{stamp} sched: Allocate JobId={i} NodeList=\S+ #CPUs=(\d+)", log)
+        # the main scheduler logs "sched: Allocate JobId=N NodeList=... #CPUs=C", the backfill scheduler
+        # "sched/backfill: _start_job: Started JobId=N in PARTITION on NODE" (no CPU count)
+        a = re.search(rf"{stamp} sched: Allocate JobId={i} NodeList=\S+ #CPUs=(\d+)", log) or \
+            re.search(rf"{stamp} sched/backfill: _start_job: Started JobId={i} ()", log)
         d = re.search(rf"{stamp} _job_complete: JobId={i} done", log)
         if a and d:
-            rows.append({"job": i, "cpus": int(a.group(2)), "start": datetime.fromisoformat(a.group(1)),
-                         "end": datetime.fromisoformat(d.group(1))})
+            rows.append({"job": i, "cpus": int(a.group(2)) if a.group(2) else None,
+                         "start": datetime.fromisoformat(a.group(1)), "end": datetime.fromisoformat(d.group(1))})
     return pd.DataFrame(rows)
 
 
