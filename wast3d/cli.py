@@ -245,13 +245,17 @@ def cmd_pretrain(sub):
     return run
 
 
-def stage_command(name: str, help_: str, positionals: tuple[str, ...], fn: str, picture=False, progress=False):
-    """A ``wast3d <stage>`` command calling ``pipeline.<fn>(*positionals, [picture,] params[, progress])``."""
+def stage_command(name: str, help_: str, positionals: tuple[str, ...], fn: str, picture=False, progress=False,
+                  options: tuple[str, ...] = ()):
+    """A ``wast3d <stage>`` command calling ``pipeline.<fn>(*positionals, [picture,] params[, progress],
+    **options)``; ``options`` are optional paths (``--stylize-npz PATH`` for ``stylize_npz``)."""
 
     @command(name, help_)
     def cmd(sub):
         for n in positionals:
             sub.add_argument(n, type=Path)
+        for n in options:
+            sub.add_argument("--" + n.replace("_", "-"), dest=n, type=Path)
         if picture:
             sub.add_argument("--picture", type=Path)
         if progress:
@@ -263,6 +267,7 @@ def stage_command(name: str, help_: str, positionals: tuple[str, ...], fn: str, 
 
             args = [getattr(a, n) for n in positionals] + ([a.picture] if picture else [])
             kw = {"progress": not a.no_progress} if progress else {}
+            kw.update({n: getattr(a, n) for n in options})
             getattr(pipeline, fn)(*args, _load_params(a.params), **kw)
 
         return run
@@ -272,6 +277,22 @@ def stage_command(name: str, help_: str, positionals: tuple[str, ...], fn: str, 
 
 stage_command("surface", "stage 2: sample the content's surface (or pass it through when disabled)",
               ("scene", "out_ply", "out_json"), "run_surface")
+@command("style-clean", "stage 2 for a style: drop floaters outside the patch, haze and hidden Gaussians")
+def cmd_style_clean(sub):
+    sub.add_argument("scene", type=Path)
+    sub.add_argument("out_ply", type=Path)
+    sub.add_argument("out_json", type=Path)
+    sub.add_argument("--labels-from", type=Path, help="labelled PLY the style was rendered from (element labels)")
+    _params(sub)
+
+    def run(a):
+        from .pipeline import run_style_clean
+
+        run_style_clean(a.scene, a.out_ply, a.out_json, _load_params(a.params), a.labels_from)
+
+    return run
+
+
 stage_command("cluster", "stage 3: k-means of the content on position and colour", ("content", "out_npz"),
               "run_cluster", picture=True)
 stage_command("register", "stage 4a: per-cluster registration to the style scene (eq. 7)",
@@ -289,13 +310,13 @@ stage_command("render", "stage 7: turntable (PNG frames + GIF), key views and cl
               ("scene", "reference", "out_dir"), "run_render", progress=True)
 stage_command("texture-reference", "stage 7: the style rendered at the pixel scale its elements have on the content's "
               "renders (the reference of texture_swd)", ("style", "content", "out_dir"), "run_texture_reference",
-              progress=True)
+              progress=True, options=("registration",))
 stage_command("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
               ("content", "style", "out_ply"), "run_colour_transfer")
 stage_command("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result",
               ("result", "content", "style", "result_render", "style_render", "texture_reference", "content_render",
                "out_json"),
-              "run_evaluate")
+              "run_evaluate", options=("stylize_npz",))
 
 
 @command("compare", "side-by-side comparison sheet of render folders (content, style, ours, baselines)")

@@ -9,7 +9,12 @@ trip is exact:
 - ``opacity_logits``: [N], the opacity is ``sigmoid(opacity_logits)``;
 - ``sh_dc``: [N, 3] degree-0 spherical-harmonic coefficients, ``rgb = 0.5 + SH_C0 * sh_dc``;
 - ``sh_rest``: [N, K, 3] higher-order coefficients, ``K = (d + 1)^2 - 1`` for SH degree d (K = 0
-  for degree 0).
+  for degree 0);
+- ``element``: optional [N] int64 label, not a parameter: which element of a style scene each Gaussian
+  belongs to (0 = the ground, 1.. = pebbles, blades, strands, stones; see :mod:`wast3d.procedural`).
+  It travels with the Gaussians through ``subset``/``concat``/``transform`` (selection, stylization and
+  rescale are index maps), so the element metrics (:mod:`wast3d.elements`) can follow each element
+  into a result. ``None`` for unlabelled scenes.
 
 The covariance of a Gaussian is ``Sigma = R S S^T R^T`` with ``R`` the rotation of the normalized
 quaternion and ``S = diag(scales)``.
@@ -18,7 +23,7 @@ quaternion and ``S = diag(scales)``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Iterable
 
 import torch
@@ -100,6 +105,7 @@ class GaussianScene:
     opacity_logits: torch.Tensor
     sh_dc: torch.Tensor
     sh_rest: torch.Tensor
+    element: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
@@ -114,6 +120,8 @@ class GaussianScene:
         if r.ndim != 3 or r.shape[0] != n or r.shape[2] != 3:
             raise ValueError(f"GaussianScene.sh_rest: expected shape [N, K, 3], got {list(r.shape)}")
         sh_degree_from_rest(r.shape[1])
+        if self.element is not None and tuple(self.element.shape) != (n,):
+            raise ValueError(f"GaussianScene.element: expected shape [{n}], got {list(self.element.shape)}")
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
@@ -199,13 +207,16 @@ class GaussianScene:
 
     # ---- manipulation ---------------------------------------------------------------------------
     def tensors(self) -> dict[str, torch.Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """The six parameter tensors (``element``, a label, is not one of them)."""
+        return {k: getattr(self, k) for k in FIELDS}
 
-    def map(self, fn) -> "GaussianScene":
-        return GaussianScene(**{k: fn(v) for k, v in self.tensors().items()})
+    def map(self, fn, element_fn=None) -> "GaussianScene":
+        """``fn`` applied to every parameter tensor, ``element_fn`` (default: none) to the labels."""
+        el = self.element if self.element is None or element_fn is None else element_fn(self.element)
+        return GaussianScene(**{k: fn(v) for k, v in self.tensors().items()}, element=el)
 
     def to(self, device=None, dtype=None) -> "GaussianScene":
-        return self.map(lambda t: t.to(device=device, dtype=dtype))
+        return self.map(lambda t: t.to(device=device, dtype=dtype), lambda e: e.to(device=device))
 
     def detach(self) -> "GaussianScene":
         return self.map(lambda t: t.detach())
@@ -215,7 +226,7 @@ class GaussianScene:
 
     def subset(self, index: torch.Tensor) -> "GaussianScene":
         """index: a boolean mask [N] or integer indices [M]."""
-        return self.map(lambda t: t[index])
+        return self.map(lambda t: t[index], lambda e: e[index.to(e.device) if torch.is_tensor(index) else index])
 
     def with_sh_degree(self, degree: int) -> "GaussianScene":
         """Truncate or zero-pad the SH coefficients to ``degree``."""
@@ -234,7 +245,9 @@ class GaussianScene:
             raise ValueError("concat of no scenes")
         deg = max(s.sh_degree for s in scenes)
         scenes = [s.with_sh_degree(deg) for s in scenes]
-        return GaussianScene(**{k: torch.cat([getattr(s, k) for s in scenes]) for k in FIELDS})
+        # labels survive only if every part has them (a half-labelled scene would mislead the metrics)
+        el = torch.cat([s.element for s in scenes]) if all(s.element is not None for s in scenes) else None
+        return GaussianScene(**{k: torch.cat([getattr(s, k) for s in scenes]) for k in FIELDS}, element=el)
 
     def transform(
         self,

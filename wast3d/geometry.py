@@ -92,3 +92,15 @@ def frame_from_normal(n: torch.Tensor) -> torch.Tensor:
     t1 = t1 / t1.norm(dim=1, keepdim=True).clamp_min(1e-12)
     t2 = torch.linalg.cross(n, t1)
     return torch.stack([t1, t2, n], dim=2)
+
+
+def robust_bounds(points: torch.Tensor, q: float = 0.005) -> tuple[torch.Tensor, float]:
+    """Robust centre [3] and radius of points [N, 3]: the box of the per-axis quantiles ``q``..``1-q``
+    (stray floaters ignored), its centre and half its diagonal (at least 1e-3)."""
+    m = points.detach().float()
+    if len(m) == 0:
+        return torch.zeros(3), 1.0
+    lo = torch.quantile(m, q, dim=0) if len(m) > 1 else m[0]
+    hi = torch.quantile(m, 1 - q, dim=0) if len(m) > 1 else m[0]
+    return 0.5 * (lo + hi), max(float(0.5 * (hi - lo).norm()), 1e-3)
+

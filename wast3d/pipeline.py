@@ -43,6 +43,30 @@ def run_surface(scene_ply: Path, out_ply: Path, out_json: Path, params: dict) ->
     write_json(out_json, report)
 
 
+def run_style_clean(scene_ply: Path, out_ply: Path, out_json: Path, params: dict, labels_from: Path | None = None) -> None:
+    """Clean a style scene with the style's rules (:func:`wast3d.surface.clean_style`); ``labels_from``: the
+    labelled scene a trained style was rendered from (each Gaussian takes its nearest source's element)."""
+    from .surface import StyleCleanConfig, clean_style
+
+    cfg = make_config(StyleCleanConfig, params, "style_clean")
+    scene = read_ply(scene_ply)
+    if labels_from is not None:
+        from .elements import transfer_elements
+
+        src = read_ply(labels_from)
+        if src.element is None:
+            raise ValueError(f"{labels_from}: no property 'element' to take the labels from")
+        scene.element = transfer_elements(scene.means, src.means, src.element)
+    idx, report = clean_style(scene, cfg)
+    report["source"] = str(scene_ply)
+    report["labels_from"] = None if labels_from is None else str(labels_from)
+    out = scene.subset(idx)
+    if out.element is not None:
+        report["element_share_of_gaussians"] = float((out.element > 0).double().mean())
+    write_ply(out_ply, out)
+    write_json(out_json, report)
+
+
 def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: dict) -> None:
     from .clustering import ClusterConfig, kmeans
 
@@ -202,13 +226,17 @@ def run_render(scene_ply: Path, reference_ply: Path, out_dir: Path, params: dict
              info["fragment_pixel"])
 
 
-def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, params: dict, progress: bool = True) -> None:
+def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, params: dict, progress: bool = True,
+                          registration: Path | None = None) -> None:
     """The style's frames at the pixel scale its elements have on renders fitted to the content
-    (:func:`~wast3d.render.texture_reference_cameras`); ``params``: the render block."""
+    (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
+    ``params``: the render block."""
+    from .registration import Registration
     from .render import RenderConfig, render_texture_reference
 
     cfg = make_config(RenderConfig, params, "render")
-    info = render_texture_reference(read_ply(style_ply), read_ply(content_ply), out_dir, cfg, progress)
+    s0 = None if registration is None else Registration.from_npz(load_npz(registration)).s0
+    info = render_texture_reference(read_ply(style_ply), read_ply(content_ply), out_dir, cfg, progress, s0)
     log.info("texture reference: %s at zoom %.3f (cameras fitted to it, spacing matched to %s) -> %s", style_ply,
              info["zoom"], content_ply, out_dir)
 
@@ -229,8 +257,42 @@ def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, param
                                                     "gaussians": len(out), "config": dataclasses.asdict(cfg)})
 
 
+def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, texture_reference: Path,
+                      stylize_npz: Path | None, cfg) -> dict:
+    """The element metrics of one result (:mod:`wast3d.elements`): ``element_share`` of the result's
+    turntable against the style's texture reference, and ``element_intact`` against the collage
+    (the positions before optimization in ``stylize_npz``)."""
+    from .elements import copy_ids, element_intact, element_share
+    from .render import read_element_frames
+
+    out = {"element_share": None, "element_share_style": None, "element_share_ratio": None, "element_intact": None}
+    style_el = read_element_frames(texture_reference)
+    if style.element is None or style_el is None:
+        return {**out, "element_status": "not computed: the style has no element labels"}
+    style_frames = read_frames(texture_reference)
+    out["element_share_style"] = element_share(style_el, style_frames[..., 3], cfg.min_alpha)
+    res_el = read_element_frames(result_render)
+    # an unlabelled result (the content, a colour transfer) has no Gaussian of the style: no element pixel
+    out["element_share"] = 0.0 if res_el is None else element_share(res_el, frames[..., 3], cfg.min_alpha)
+    out["element_share_ratio"] = out["element_share"] / max(out["element_share_style"], 1e-12)
+    status = "share computed"
+    if stylize_npz is not None and result.element is not None:
+        d = load_npz(stylize_npz, required=("labels", "before_means"))
+        if len(d["labels"]) != len(result):
+            raise ValueError(f"{stylize_npz}: 'labels' has {len(d['labels'])} entries, the result {len(result)} Gaussians")
+        intact = element_intact(torch.from_numpy(d["before_means"]), result.means,
+                                copy_ids(result.element, torch.from_numpy(d["labels"])), cfg)
+        out["element_intact"] = intact.pop("intact")
+        out["element_intact_detail"] = intact
+        status += ", intact computed"
+    else:
+        status += "; intact not computed (no stylized elements)"
+    return {**out, "element_status": status}
+
+
 def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_render: Path, style_render: Path,
-                 texture_reference: Path, content_render: Path, out_json: Path, params: dict) -> None:
+                 texture_reference: Path, content_render: Path, out_json: Path, params: dict,
+                 stylize_npz: Path | None = None) -> None:
     """Weights-free metrics, texture SWD, coverage and CLIP crop similarity of one result; ``params``:
     ``metrics``, ``texture``, ``crops`` and ``clip`` blocks (:class:`~wast3d.metrics.MetricsConfig`,
     :class:`~wast3d.image_metrics.TextureConfig`, :class:`~wast3d.clip_eval.CropConfig`,
@@ -242,7 +304,9 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     from .metrics import MetricsConfig, weights_free_metrics
     from .render import read_frames
 
-    blocks = ("clip", "crops", "metrics", "texture")
+    from .elements import ElementConfig
+
+    blocks = ("clip", "crops", "elements", "metrics", "texture")
     unknown = sorted(set(params) - set(blocks))
     if unknown:
         raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(blocks)})")
@@ -250,6 +314,7 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     tcfg = make_config(TextureConfig, params.get("texture"), "evaluate.texture")
     ccfg = make_config(CropConfig, params.get("crops"), "evaluate.crops")
     kcfg = make_config(ClipConfig, params.get("clip"), "evaluate.clip")
+    ecfg = make_config(ElementConfig, params.get("elements"), "evaluate.elements")
     result, style = read_ply(result_ply), read_ply(style_ply)
     content = read_ply(content_ply)
     for path, scene in ((result_ply, result), (style_ply, style), (content_ply, content)):
@@ -264,6 +329,7 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
                          f"{content_render} {list(reference.shape)}; render both with the same settings")
     out["coverage"] = coverage(frames[..., 3], reference[..., 3])
     texture_frames = read_frames(texture_reference)  # a missing or corrupt reference is an error, not a result
+    out.update(evaluate_elements(result, style, frames, result_render, texture_reference, stylize_npz, ecfg))
     try:
         out["texture_swd"] = texture_swd(frames, texture_frames, tcfg)
         out["texture_status"] = "computed"
@@ -292,6 +358,6 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
             out["clip_status"] = "computed"
     out.update({"result": str(result_ply), "content": str(content_ply), "style": str(style_ply),
                 "config": {"metrics": dataclasses.asdict(mcfg), "texture": dataclasses.asdict(tcfg),
-                           "crops": dataclasses.asdict(ccfg),
+                           "crops": dataclasses.asdict(ccfg), "elements": dataclasses.asdict(ecfg),
                            "clip": dataclasses.asdict(kcfg)}})
     write_json(out_json, out)

@@ -8,6 +8,9 @@ with ``K = (d+1)^2 - 1`` rest coefficients per channel for SH degree d. ``f_rest
 the K red coefficients first, then green, then blue (the reference stores ``features_rest`` as
 [N, K, 3] and writes ``transpose(1, 2).flatten``). Values are stored before activation: log-scale,
 opacity logit, unnormalized quaternion (w, x, y, z). Normals are written as zeros, as the reference.
+A labelled scene (``GaussianScene.element``) gets one more property, ``element`` (int32), after them;
+other readers skip it as they skip any extra property, and a scene without labels is written bit for
+bit in the reference layout.
 
 Also read (never written): the PlayCanvas/SuperSplat compressed layout, detected from the header
 (an element ``chunk`` and packed vertices; :mod:`wast3d.ply_compressed`).
@@ -37,6 +40,9 @@ class PlyError(ValueError):
     """A PLY file that is not a readable 3DGS or point-cloud file; the message names file and field."""
 
 
+ELEMENT = "element"  # the optional label property (GaussianScene.element)
+
+
 def property_names(sh_degree: int) -> list[str]:
     k = num_sh_rest(sh_degree)
     return (
@@ -59,9 +65,14 @@ def write_ply(path: str | Path, scene: GaussianScene) -> None:
     """Write ``scene`` as a binary little-endian 3DGS PLY, atomically (temporary file, then rename)."""
     names = property_names(scene.sh_degree)
     arr = scene_to_array(scene)
-    rec = np.empty(arr.shape[0], dtype=[(n, "<f4") for n in names])
+    dtype = [(n, "<f4") for n in names]
+    if scene.element is not None:
+        dtype.append((ELEMENT, "<i4"))
+    rec = np.empty(arr.shape[0], dtype=dtype)
     for i, n in enumerate(names):
         rec[n] = arr[:, i]
+    if scene.element is not None:
+        rec[ELEMENT] = scene.element.detach().cpu().numpy().astype(np.int32)
     with atomic_path(path) as tmp:
         PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<").write(str(tmp))
 
@@ -152,6 +163,13 @@ def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
         sh_dc=t(cols["sh_dc"]),
         sh_rest=t(cols["rest"]).reshape(int(valid.sum()), 3, k).transpose(1, 2).contiguous(),
     )
+    if ELEMENT in names:
+        el = np.asarray(v[ELEMENT])
+        if not np.issubdtype(el.dtype, np.integer):
+            raise PlyError(f"{path}: property '{ELEMENT}' must be an integer type, got {el.dtype}")
+        if (el < 0).any():
+            raise PlyError(f"{path}: property '{ELEMENT}': {int((el < 0).sum())} negative labels (0 is the ground)")
+        scene.element = torch.from_numpy(el[valid].astype(np.int64))
     if (~valid).any():
         log.warning("%s: dropped %d of %d Gaussians with NaN/inf values", path, int((~valid).sum()), n)
     qn = scene.quats.norm(dim=-1)

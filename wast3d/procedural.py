@@ -13,6 +13,9 @@ parametric ``torus``/``sphere``), normalized to the unit ball, with Gaussians sa
 (area-weighted), thin and facing the normal, with the log-normal in-plane elongation and size of a
 trained scene's Gaussians (so that metrics on Gaussian shape can tell the style's from the content's).
 
+Every style Gaussian carries the id of its element (``GaussianScene.element``: 0 the ground or gravel,
+1.. each pebble, blade, strand or stone), written to the PLY as the property ``element``.
+
 Every generator is deterministic given its seed. Style Gaussians are surface discs: tangential scale
 0.6 x the sample spacing, normal scale ``flatness`` x that, so no needles appear (the paper
 regularizes its style scenes for the same reason).
@@ -118,8 +121,9 @@ def style_pebbles(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
         P.append(p), N.append(nrm), C.append(col)
     g = _ground(rng, n_ground, np.array([0.76, 0.68, 0.52]), 0.12)
     P.append(g[0]), N.append(g[1]), C.append(g[2])
+    E = _element_ids([len(p) for p in P[:-1]], ground=len(g[0]))
     P, N, C = map(np.concatenate, (P, N, C))
-    return surface_gaussians(P, N, C, _spacing(P, 4.0 + 2 * math.pi * (radii**2).sum() * 0.8))
+    return _labelled(surface_gaussians(P, N, C, _spacing(P, 4.0 + 2 * math.pi * (radii**2).sum() * 0.8)), E)
 
 
 @_register
@@ -151,7 +155,8 @@ def style_grass(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
     blades = surface_gaussians(P, nrm, C, spacing, flatness=0.35, tangent=tang, elongation=1.6)
     g = _ground(rng, n_ground, np.array([0.36, 0.27, 0.18]), 0.15)
     ground = surface_gaussians(*g, _spacing(g[0], 4.0))
-    return GaussianScene.concat([ground, blades])
+    return _labelled(GaussianScene.concat([ground, blades]), _element_ids([], ground=len(g[0]))
+                     + [np.repeat(np.arange(1, n_blades + 1), per_blade)])
 
 
 @_register
@@ -191,9 +196,10 @@ def style_wicker(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
             col = base * stripe * (1 + 0.05 * rng.standard_normal((along, ring, 1)))
             P.append(p.reshape(-1, 3)), N.append(circ.reshape(-1, 3)), C.append(col.reshape(-1, 3))
             T.append(np.repeat(t, ring, axis=0))
+    E = _element_ids([len(p) for p in P])  # one element per strand; a weave has no ground
     P, N, C, T = map(np.concatenate, (P, N, C, T))
     spacing = max(2.0 / along, 2 * math.pi * tube_r / ring)
-    return surface_gaussians(P, N, C, spacing, flatness=0.4, tangent=T, elongation=1.3)
+    return _labelled(surface_gaussians(P, N, C, spacing, flatness=0.4, tangent=T, elongation=1.3), E)
 
 
 @_register
@@ -224,8 +230,22 @@ def style_stones(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
         P.append(p[keep]), N.append(nrm[keep]), C.append(col[keep])
     g = _ground(rng, n_ground, np.array([0.45, 0.42, 0.38]), 0.25, roughness=0.015)
     P.append(g[0]), N.append(g[1]), C.append(g[2])
+    E = _element_ids([len(p) for p in P[:-1]], ground=len(g[0]))
     P, N, C = map(np.concatenate, (P, N, C))
-    return surface_gaussians(P, N, C, _spacing(P, 4.0 + 4 * math.pi * (radii**2).sum() * 0.7))
+    return _labelled(surface_gaussians(P, N, C, _spacing(P, 4.0 + 4 * math.pi * (radii**2).sum() * 0.7)), E)
+
+
+def _element_ids(sizes: list[int], ground: int = 0) -> list[np.ndarray]:
+    """Labels in generation order: element j (1-based) for each of ``sizes``, then ``ground`` zeros."""
+    return [np.full(m, j + 1, np.int64) for j, m in enumerate(sizes)] + [np.zeros(ground, np.int64)]
+
+
+def _labelled(scene: GaussianScene, parts: list[np.ndarray]) -> GaussianScene:
+    el = np.concatenate(parts)
+    if len(el) != len(scene):
+        raise AssertionError(f"element labels: {len(el)} for {len(scene)} Gaussians")
+    scene.element = torch.from_numpy(el)
+    return scene
 
 
 def _spacing(points: np.ndarray, area: float) -> float:

@@ -16,20 +16,14 @@ import torch
 from .cameras import Camera, orbit_cameras
 from .datasets import write_blender
 from .gaussians import GaussianScene, shortest_axis
+from .geometry import robust_bounds
 from .io_utils import atomic_path, write_json
 from .rendering import rasterize
 
 
 def scene_bounds(scene: GaussianScene, q: float = 0.005) -> tuple[torch.Tensor, float]:
-    """Robust centre [3] and radius of a scene (quantiles ``q``..``1-q`` ignore stray floaters)."""
-    m = scene.means.detach().float()
-    if len(m) == 0:
-        return torch.zeros(3), 1.0
-    lo = torch.quantile(m, q, dim=0) if len(m) > 1 else m[0]
-    hi = torch.quantile(m, 1 - q, dim=0) if len(m) > 1 else m[0]
-    centre = 0.5 * (lo + hi)
-    radius = max(float(0.5 * (hi - lo).norm()), 1e-3)
-    return centre, radius
+    """Robust centre [3] and radius of a scene (:func:`wast3d.geometry.robust_bounds` of its means)."""
+    return robust_bounds(scene.means, q)
 
 
 def fit_orbit(scene: GaussianScene, n: int, width: int, height: int | None = None, fov_deg: float = 40.0,
@@ -254,6 +248,7 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
         else:
             m = rasterize(scene, cam, background=cfg.background)
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
+        save_element_frame(scene, cam, out_dir, i)
         gif.append(to_uint8(m["rgb"]))
     with atomic_path(out_dir / "turntable.gif") as tmp:
         iio.imwrite(tmp, np.stack(gif), extension=".gif", duration=1000.0 / cfg.fps, loop=0)
@@ -269,6 +264,27 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
     return info
 
 
+def save_element_frame(scene: GaussianScene, cam: Camera, out_dir: Path, i: int) -> None:
+    """The label channel of a labelled scene (:mod:`wast3d.elements`): ``elements/NNN.png``, the share of
+    each pixel drawn by element (not ground) Gaussians, 8-bit grey; nothing for an unlabelled scene."""
+    if scene.element is None:
+        return
+    from .elements import element_pixels, label_colours
+
+    m = rasterize(scene, cam, background=(0.0, 0.0, 0.0), colors=label_colours(scene.element, scene.dtype))
+    (out_dir / "elements").mkdir(exist_ok=True)
+    save_png(out_dir / "elements" / f"{i:03d}.png", to_uint8(element_pixels(m["rgb"], m["alpha"])))
+
+
+def read_element_frames(folder: str | Path) -> torch.Tensor | None:
+    """``elements/*.png`` of :func:`save_element_frame` -> [V, H, W] in [0, 1], or None when the scene
+    rendered there had no labels."""
+    files = sorted((Path(folder) / "elements").glob("*.png"))
+    if not files:
+        return None
+    return torch.from_numpy(np.stack([iio.imread(f) for f in files])).float() / 255.0
+
+
 def straight_rgba(m: dict, background) -> torch.Tensor:
     """A render composited on ``background`` (``m["rgb"]`` [H, W, 3], ``m["alpha"]`` [H, W]) -> [H, W, 4]
     straight (un-premultiplied) RGBA, as the frames are stored."""
@@ -278,38 +294,41 @@ def straight_rgba(m: dict, background) -> torch.Tensor:
     return torch.cat([straight, a[..., None]], -1)
 
 
-def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg: RenderConfig) -> tuple[list[Camera], float]:
+def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg: RenderConfig,
+                              s0: float | None = None) -> tuple[list[Camera], float]:
     """Cameras for the style's *texture reference* (``texture_swd``): the style's turntable, zoomed by
 
-        z = (R_style * h_content) / (R_content * h_style)
+        z = R_style / (R_content * s0)
 
-    (R: :func:`scene_bounds` radius, h: mean nearest-neighbour spacing), so that one style spacing covers
-    as many pixels as one content spacing does in the turntable fitted to the content, in which every
-    result of the pair is rendered. Registration maps a content spacing onto a style spacing (its
-    default scale s0), so the style's elements then have the pixel size they have on a result.
-    Returns (cameras, z). A registration scale other than s0 puts smaller or larger elements on the
-    result; the reference stays at s0 (what the method is meant to reproduce)."""
+    (R: :func:`scene_bounds` radius; s0: the registration's base scale, style units per content unit,
+    :func:`wast3d.registration.base_scale`; None: the density rule, h_style / h_content), so that a
+    length of the style covers as many pixels as it does once registration has mapped it onto the
+    content, in the turntable fitted to the content in which every result of the pair is rendered: the
+    style's elements then have the pixel size they have on a result. Returns (cameras, z)."""
     from .registration import mean_spacing
 
     _, rs = scene_bounds(style)
     _, rc = scene_bounds(content)
-    z = (rs * mean_spacing(content.means)) / (rc * mean_spacing(style.means))
+    if s0 is None:
+        s0 = mean_spacing(style.means) / mean_spacing(content.means)
+    z = rs / (rc * s0)
     cams = [replace(c, fx=c.fx * z, fy=c.fy * z) for c in turntable_cameras(style, cfg)]
     return cams, z
 
 
 def render_texture_reference(style: GaussianScene, content: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
-                             progress: bool = False) -> dict:
+                             progress: bool = False, s0: float | None = None) -> dict:
     """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`
     and ``render.json`` (cameras, zoom) under ``out_dir``."""
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
     (out_dir / "frames").mkdir(parents=True, exist_ok=True)
-    cams, z = texture_reference_cameras(style, content, cfg)
+    cams, z = texture_reference_cameras(style, content, cfg, s0)
     for i, cam in enumerate(tqdm(cams, desc="texture reference", disable=not progress)):
         m = rasterize(style, cam, background=cfg.background)
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
+        save_element_frame(style, cam, out_dir, i)
     info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "config": asdict(cfg),
             "cameras": camera_dicts(cams)}
     write_json(out_dir / "render.json", info)

@@ -16,6 +16,15 @@ the visible surface. The sampler chains four steps, each switchable, and reports
 
 Procedural and other already-clean scenes set ``enabled: false``: every Gaussian is kept and the
 report says the stage was skipped and why.
+
+Style cleaning (:func:`clean_style`, :class:`StyleCleanConfig`) applies the same steps to a *trained
+style* with the style's own rules: a style is a patch seen from above (its training views orbit it at
+positive elevations), so visibility is judged from above only; and a trained patch carries floaters
+far outside it (the demo's trained pebbles span 3.8 x 3.7 x 3.3 units for a 2 x 2 x 0.16 patch), so
+Gaussians outside the patch's *core box* (per-axis ``core_quantile`` .. 1 - ``core_quantile`` of the
+opaque Gaussians, widened by ``core_margin`` of its size on each side) go first. Nearly transparent
+Gaussians (haze that no training view resolves) and those hidden under the visible surface are what
+put tints into a result that the style's renders never show.
 """
 
 from __future__ import annotations
@@ -46,15 +55,40 @@ class SurfaceConfig:
     seed: int = 0
 
 
+@dataclass
+class StyleCleanConfig:
+    enabled: bool = True
+    min_opacity: float = 0.05
+    core_quantile: float = 0.01  # core box: these quantiles of the opaque Gaussians' positions, per axis
+    core_opacity: float = 0.5  # "opaque" for the core box
+    core_margin: float = 0.05  # the box widened by this fraction of its size on each side
+    outlier_k: int = 30
+    outlier_quantile: float = 0.99
+    visibility: bool = True
+    views: int = 24
+    resolution: int = 200
+    depth_tolerance: float = 0.05  # 0.02 also removed surface Gaussians of the trained pebbles (dark spots)
+    seed: int = 0
+
+    def __post_init__(self):
+        if not 0 <= self.core_quantile < 0.5 or self.core_margin < 0 or not 0 <= self.min_opacity < 1:
+            raise ValueError("style_clean: need 0 <= core_quantile < 0.5, core_margin >= 0, 0 <= min_opacity < 1")
+
+
+CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
+STYLE_ELEVATIONS = (15.0, 35.0, 55.0, 80.0)  # a style patch is seen from above (cf. render.export_blender)
+
+
 @torch.no_grad()
-def visible_mask(scene: GaussianScene, views: int, resolution: int, tol: float) -> torch.Tensor:
+def visible_mask(scene: GaussianScene, views: int, resolution: int, tol: float,
+                 elevations_deg: tuple = CONTENT_ELEVATIONS) -> torch.Tensor:
     """[N] bool: the centre lies on the rendered surface (|z - depth| < tol * radius, alpha > 0.5)
-    in at least one of ``views`` orbit views (elevations -30..75 degrees)."""
+    in at least one of ``views`` orbit views (at ``elevations_deg``, cycled)."""
     from .render import fit_orbit, scene_bounds
     from .rendering import rasterize
 
     _, radius = scene_bounds(scene)
-    cams = fit_orbit(scene, views, resolution, elevations_deg=(-30.0, 10.0, 40.0, 75.0))
+    cams = fit_orbit(scene, views, resolution, elevations_deg=elevations_deg)
     seen = torch.zeros(len(scene), dtype=torch.bool)
     for cam in cams:
         r = rasterize(scene, cam)
@@ -73,42 +107,55 @@ def visible_mask(scene: GaussianScene, views: int, resolution: int, tol: float) 
     return seen
 
 
+def _drop(keep: torch.Tensor, out: torch.Tensor, report: dict, key: str) -> None:
+    """Clear ``out`` [N] bool from ``keep`` and count the newly removed under ``report[key]``."""
+    report[key] = int((keep & out).sum())
+    keep &= ~out
+
+
+def _outliers(scene: GaussianScene, keep: torch.Tensor, k: int, quantile: float, report: dict) -> None:
+    """Drop kept Gaussians whose k-th neighbour distance (among the kept) is above the quantile."""
+    idx = keep.nonzero().squeeze(1)
+    if k > 0 and len(idx) > k + 1:
+        d, _ = knn(scene.means[idx], scene.means[idx], k, exclude_self=True)
+        dk = d[:, -1]
+        thr = torch.quantile(dk.double(), quantile).to(dk)
+        out = torch.zeros_like(keep)
+        out[idx[dk > thr]] = True
+        _drop(keep, out, report, "removed_outliers")
+        report["outlier_threshold"] = float(thr)
+
+
+def _hidden(scene: GaussianScene, keep: torch.Tensor, views: int, resolution: int, tol: float, elevations,
+            report: dict) -> None:
+    # render only what survived the steps before: a removed floater would still occlude the surface
+    # (the 0.3 px^2 dilation gives even a tiny Gaussian a pixel-sized footprint) and widen the
+    # camera rig; with 25k floaters in a 1e6-Gaussian scene this cut the kept surface to 30 %
+    idx = keep.nonzero().squeeze(1)
+    vis = torch.zeros_like(keep)
+    if len(idx):
+        vis[idx[visible_mask(scene.subset(idx), views, resolution, tol, elevations)]] = True
+    _drop(keep, ~vis, report, "removed_not_on_visible_surface")
+
+
+def _skipped(n: int, reason: str) -> tuple[torch.Tensor, dict]:
+    log.info("%s skipped: %s", reason.split(" disabled")[0], reason)
+    return torch.arange(n), {"input": n, "skipped": True, "reason": reason, "kept": n}
+
+
 def sample_surface(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[torch.Tensor, dict]:
     """Indices [K] of the content Gaussians kept, and a report of counts removed and why."""
     n = len(scene)
     if n == 0:
         raise ValueError("surface sampling: the content scene has no Gaussians")
-    report: dict = {"input": n}
     if not cfg.enabled:
-        report.update(skipped=True, reason="surface sampling disabled for this scene (already a clean surface)",
-                      kept=n)
-        log.info("surface sampling skipped: %s", report["reason"])
-        return torch.arange(n), report
+        return _skipped(n, "surface sampling disabled for this scene (already a clean surface)")
+    report: dict = {"input": n}
     keep = torch.ones(n, dtype=torch.bool)
-    op = scene.opacities.detach()
-    low = op < cfg.min_opacity
-    keep &= ~low
-    report["removed_low_opacity"] = int(low.sum())
-    idx = keep.nonzero().squeeze(1)
-    if cfg.outlier_k > 0 and len(idx) > cfg.outlier_k + 1:
-        d, _ = knn(scene.means[idx], scene.means[idx], cfg.outlier_k, exclude_self=True)
-        dk = d[:, -1]
-        thr = torch.quantile(dk.double(), cfg.outlier_quantile).to(dk)
-        out = dk > thr
-        keep[idx[out]] = False
-        report["removed_outliers"] = int(out.sum())
-        report["outlier_threshold"] = float(thr)
+    _drop(keep, scene.opacities.detach() < cfg.min_opacity, report, "removed_low_opacity")
+    _outliers(scene, keep, cfg.outlier_k, cfg.outlier_quantile, report)
     if cfg.visibility:
-        # render only what survived the steps above: a removed floater would still occlude the surface
-        # (the 0.3 px^2 dilation gives even a tiny Gaussian a pixel-sized footprint) and widen the
-        # camera rig; with 25k floaters in a 1e6-Gaussian scene this cut the kept surface to 30 %
-        idx = keep.nonzero().squeeze(1)
-        vis = torch.zeros(n, dtype=torch.bool)
-        if len(idx):
-            vis[idx[visible_mask(scene.subset(idx), cfg.views, cfg.resolution, cfg.depth_tolerance)]] = True
-        hidden = keep & ~vis
-        keep &= vis
-        report["removed_not_on_visible_surface"] = int(hidden.sum())
+        _hidden(scene, keep, cfg.views, cfg.resolution, cfg.depth_tolerance, CONTENT_ELEVATIONS, report)
     idx = keep.nonzero().squeeze(1)
     if len(idx) == 0:
         raise ValueError("surface sampling removed every Gaussian; relax min_opacity / depth_tolerance")
@@ -119,7 +166,46 @@ def sample_surface(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[torch.Tens
         pick = torch.multinomial(w / w.sum(), cfg.max_points, replacement=False, generator=g)
         report["removed_by_resampling"] = len(idx) - cfg.max_points
         idx = idx[pick.sort().values]
+    return idx, _kept(report, idx, n, "surface sampling")
+
+
+def _kept(report: dict, idx: torch.Tensor, n: int, what: str) -> dict:
     report["kept"] = len(idx)
-    log.info("surface sampling: kept %d of %d (%s)", len(idx), n,
+    log.info("%s: kept %d of %d (%s)", what, len(idx), n,
              ", ".join(f"{k}={v}" for k, v in report.items() if k.startswith("removed")))
-    return idx, report
+    return report
+
+
+def core_box(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lo [3], hi [3]) of the style's core box (module docstring); the opaque Gaussians, or all when
+    fewer than 16 are opaque."""
+    m = scene.means.detach().double()
+    opaque = scene.opacities.detach() >= cfg.core_opacity
+    core = m[opaque] if int(opaque.sum()) >= 16 else m
+    lo = torch.quantile(core, cfg.core_quantile, dim=0)
+    hi = torch.quantile(core, 1 - cfg.core_quantile, dim=0)
+    pad = cfg.core_margin * (hi - lo)
+    return lo - pad, hi + pad
+
+
+def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tensor, dict]:
+    """Indices [K] of the style Gaussians kept, and a report of counts removed and why (module docstring)."""
+    n = len(scene)
+    if n == 0:
+        raise ValueError("style cleaning: the style scene has no Gaussians")
+    if not cfg.enabled:
+        return _skipped(n, "style cleaning disabled for this scene (already a clean surface)")
+    report: dict = {"input": n}
+    keep = torch.ones(n, dtype=torch.bool)
+    lo, hi = core_box(scene, cfg)
+    m = scene.means.detach().double()
+    _drop(keep, ((m < lo) | (m > hi)).any(1), report, "removed_outside_patch")
+    report["patch_box"] = [lo.tolist(), hi.tolist()]
+    _drop(keep, scene.opacities.detach() < cfg.min_opacity, report, "removed_low_opacity")
+    _outliers(scene, keep, cfg.outlier_k, cfg.outlier_quantile, report)
+    if cfg.visibility:
+        _hidden(scene, keep, cfg.views, cfg.resolution, cfg.depth_tolerance, STYLE_ELEVATIONS, report)
+    idx = keep.nonzero().squeeze(1)
+    if len(idx) == 0:
+        raise ValueError("style cleaning removed every Gaussian; relax min_opacity / depth_tolerance")
+    return idx, _kept(report, idx, n, "style cleaning")

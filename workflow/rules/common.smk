@@ -25,6 +25,8 @@ HEAVY_THREADS = 2
 SCENES = config["scenes"]
 PARTITIONS = config.get("partitions", {"default": {}})
 PAIRS = [tuple(p) for p in config.get("pairs", [])]
+# the texture reference shows the style at the scale this partition's registration puts it on the content
+REFERENCE_PARTITION = "default" if "default" in PARTITIONS else next(iter(PARTITIONS))
 
 
 def deep_merge(base, over):
@@ -121,6 +123,23 @@ def content_points(scene):
     return f"{RESULTS}/scenes/{scene}/{'surface' if needs_surface(scene) else 'scene'}.ply"
 
 
+STYLES = sorted({s for _, s in PAIRS + TABLE1_PAIRS})
+
+
+def needs_style_clean(scene):
+    """Trained and imported styles are cleaned (stage 2 for a style) unless style_clean.enabled is false;
+    a style with labels_from always goes through the rule (its labels are attached there)."""
+    s = SCENES[scene]
+    if scene not in STYLES:
+        return False
+    return bool(s.get("labels_from")) or (s["source"] != "procedural" and s.get("style_clean", {}).get("enabled", True))
+
+
+def style_points(scene):
+    """The style Gaussians that registration, selection and stylization see: cleaned, or the scene itself."""
+    return f"{RESULTS}/scenes/{scene}/{'style' if needs_style_clean(scene) else 'scene'}.ply"
+
+
 def stage_json(params):
     return json.dumps(params, separators=(",", ":"), sort_keys=True)
 
@@ -128,6 +147,7 @@ def stage_json(params):
 # scenes that no pair of the run or of Table 1 uses are defined but not built (a config merged over the
 # demo's, like config/lego.yaml, keeps the demo's scenes in `scenes`)
 USED_SCENES = [s for s in SCENES if any(s in p for p in PAIRS + TABLE1_PAIRS)]
+USED_SCENES += [src for s in USED_SCENES if (src := SCENES[s].get("labels_from")) and src not in USED_SCENES]
 
 # say what is left out, and why
 for _name, _s in SCENES.items():
@@ -141,6 +161,11 @@ for _name, _s in SCENES.items():
     if _name in CONTENTS and not needs_surface(_name):
         why = "a procedural scene is a clean surface" if _s["source"] == "procedural" else "surface.enabled is false"
         logger.info(f"scene '{_name}': left out surface sampling ({why})")
+    if _name in STYLES and not needs_style_clean(_name):
+        why = "a procedural scene is a clean surface" if _s["source"] == "procedural" else "style_clean.enabled is false"
+        logger.info(f"scene '{_name}': left out style cleaning ({why})")
+    if _s.get("labels_from") and _s["labels_from"] not in SCENES:
+        raise ValueError(f"config: scenes.{_name}.labels_from: scene '{_s['labels_from']}' is not defined under 'scenes'")
 
 
 def table_experiments(table):

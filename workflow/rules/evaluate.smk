@@ -43,8 +43,9 @@ rule render_scene:
 
 rule texture_reference:
     input:
-        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        style=lambda w: style_points(w.style),
         content=lambda w: content_points(w.content),
+        reg=f"{RESULTS}/register/{{content}}__{{style}}/{REFERENCE_PARTITION}/registration.npz",
     output:
         directory(f"{RESULTS}/render/texture_reference/{{content}}__{{style}}"),
     params:
@@ -57,13 +58,13 @@ rule texture_reference:
     benchmark:
         f"{RESULTS}/benchmarks/rules/texture_reference_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} texture-reference {input.style} {input.content} {output} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} texture-reference {input.style} {input.content} {output} --registration {input.reg} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule colour_transfer:
     input:
         content=lambda w: content_points(w.content),
-        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        style=lambda w: style_points(w.style),
     output:
         ply=f"{RESULTS}/stylize/{{content}}__{{style}}/colour_ot/final.ply",
         json=f"{RESULTS}/stylize/{{content}}__{{style}}/colour_ot/final.json",
@@ -84,17 +85,19 @@ rule evaluate:
     input:
         result=method_ply,
         content=lambda w: content_points(w.content),
-        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        style=lambda w: style_points(w.style),
         result_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}",
         style_render=f"{RESULTS}/render/scenes/{{style}}",
         texture_reference=f"{RESULTS}/render/texture_reference/{{content}}__{{style}}",
         content_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
+        stylize_npz=lambda w: [f"{RESULTS}/stylize/{w.content}__{w.style}/{w.method}/stylize.npz"] if w.method in EXPERIMENTS else [],
         clip=clip_inputs(),
     output:
         f"{RESULTS}/eval/{{content}}__{{style}}/{{method}}.json",
     params:
         exe=WAST3D,
-        cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "texture", "crops", "clip") if k in EVALUATION}),
+        cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "texture", "crops", "clip", "elements") if k in EVALUATION}),
+        stylize_npz=lambda w, input: f"--stylize-npz {input.stylize_npz[0]}" if input.stylize_npz else "",
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -103,7 +106,7 @@ rule evaluate:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
         "{params.exe} --threads {threads} evaluate {input.result} {input.content} {input.style} {input.result_render} "
-        "{input.style_render} {input.texture_reference} {input.content_render} {output} --params '{params.cfg}' 2> {log}"
+        "{input.style_render} {input.texture_reference} {input.content_render} {output} {params.stylize_npz} --params '{params.cfg}' 2> {log}"
 
 
 rule comparison_sheet:

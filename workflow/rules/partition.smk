@@ -1,4 +1,4 @@
-"""Stages 2-4: surface sampling, k-means, registration (eq. 7), selection (eq. 8)."""
+"""Stages 2-4: surface sampling (and style cleaning), k-means, registration (eq. 7), selection (eq. 8)."""
 
 
 rule surface:
@@ -20,6 +20,29 @@ rule surface:
         f"{RESULTS}/benchmarks/rules/surface_{{scene}}.tsv"
     shell:
         "{params.exe} --threads {threads} surface {input.ply} {output.ply} {output.json} --params '{params.cfg}' 2> {log}"
+
+
+rule style_clean:
+    input:
+        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        labels=lambda w: [f"{RESULTS}/scenes/{SCENES[w.scene]['labels_from']}/scene.ply"] if SCENES[w.scene].get("labels_from") else [],
+    output:
+        ply=f"{RESULTS}/scenes/{{scene}}/style.ply",
+        json=f"{RESULTS}/scenes/{{scene}}/style.json",
+    wildcard_constraints:
+        scene=constraint([s for s in SCENES if needs_style_clean(s)]),
+    params:
+        exe=WAST3D,
+        cfg=lambda w: stage_json(SCENES[w.scene].get("style_clean", {})),
+        labels=lambda w, input: f"--labels-from {shlex.quote(input.labels[0])}" if input.labels else "",
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/style_clean/{{scene}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/style_clean_{{scene}}.tsv"
+    shell:
+        "{params.exe} --threads {threads} style-clean {input.ply} {output.ply} {output.json} {params.labels} --params '{params.cfg}' 2> {log}"
 
 
 rule cluster:
@@ -47,7 +70,7 @@ rule register:
     input:
         content=lambda w: content_points(w.content),
         clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
-        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        style=lambda w: style_points(w.style),
     output:
         npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
         json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.json",
@@ -71,7 +94,7 @@ rule select:
     input:
         content=lambda w: content_points(w.content),
         clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
-        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        style=lambda w: style_points(w.style),
         reg=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
     output:
         npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.npz",

@@ -5,7 +5,7 @@ rule sinkhorn:
     input:
         content=lambda w: content_points(w.content),
         clusters=lambda w: f"{RESULTS}/partition/{w.content}/{partition_of(w)}/clusters.npz",
-        style=f"{RESULTS}/scenes/{{style}}/scene.ply",
+        style=lambda w: style_points(w.style),
         reg=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/registration.npz",
         sel=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/selection.npz",
     output:

@@ -22,6 +22,7 @@ OUT = ROOT / "config" / "README.md"
 # schema block (dotted path, $defs resolved) -> the dataclass whose defaults apply
 BLOCKS = {
     "scenes.*.surface": ("wast3d.surface", "SurfaceConfig"),
+    "scenes.*.style_clean": ("wast3d.surface", "StyleCleanConfig"),
     "scenes.*.pretrain": ("wast3d.pretrain", "PretrainConfig"),
     "partitions.*.cluster": ("wast3d.clustering", "ClusterConfig"),
     "partitions.*.register": ("wast3d.registration", "RegistrationConfig"),
@@ -32,6 +33,7 @@ BLOCKS = {
     "evaluation.render": ("wast3d.render", "RenderConfig"),
     "evaluation.crops": ("wast3d.clip_eval", "CropConfig"),
     "evaluation.clip": ("wast3d.clip_eval", "ClipConfig"),
+    "evaluation.elements": ("wast3d.elements", "ElementConfig"),
     "evaluation.metrics": ("wast3d.metrics", "MetricsConfig"),
     "evaluation.texture": ("wast3d.image_metrics", "TextureConfig"),
     "evaluation.colour_transfer": ("wast3d.baselines", "ColourTransferConfig"),
@@ -61,8 +63,8 @@ re-runs that stage and what depends on it, nothing upstream (`docs/workflow.md`,
 | source | keys | what happens |
 | --- | --- | --- |
 | `procedural` | `kind` (`content` or `style`), `name` (content: `ant`, `airplane`, `nut`, `globe`, `torus`, `sphere`; style: `pebbles`, `grass`, `wicker`, `stones`), `n_gaussians`, `seed` | generated; no pretraining, no surface sampling |
-| `ply` | `path` (a trained 3DGS PLY), `drop_invalid` (drop rows with NaN/inf instead of stopping), `surface` | imported; surface sampling unless `surface.enabled: false` |
-| `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `pretrain`, `surface` | pretrained (with eq. 1-2 when the scene is used as a style), then surface-sampled |
+| `ply` | `path` (a trained 3DGS PLY), `drop_invalid` (drop rows with NaN/inf instead of stopping), `surface`, `style_clean` | imported; as a content surface-sampled unless `surface.enabled: false`, as a style cleaned unless `style_clean.enabled: false` |
+| `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `pretrain`, `surface`, `style_clean`, `labels_from` | pretrained (with eq. 1-2 when the scene is used as a style), then surface-sampled (content) or cleaned (style) |
 """
 
 
@@ -121,7 +123,7 @@ def blocks(schema: dict):
     defs = schema["$defs"]
     props = schema["properties"]
     scene_kinds = props["scenes"]["additionalProperties"]["oneOf"]
-    for sub in ("surface", "pretrain"):
+    for sub in ("surface", "style_clean", "pretrain"):
         node = next(_resolve(k["properties"][sub], defs) for k in scene_kinds if sub in k["properties"])
         yield f"scenes.*.{sub}", node
     for key, node in props.items():

@@ -1,0 +1,130 @@
+"""Element labels (procedural styles, PLY round trip, selection/stylize/rescale) and the element metrics."""
+
+import numpy as np
+import pytest
+import torch
+from conftest import random_scene
+
+from wast3d.elements import (ElementConfig, copy_ids, element_diameter, element_intact, element_pixels,
+                             element_share, label_colours, transfer_elements)
+from wast3d.gaussians import GaussianScene
+from wast3d.ply import PlyError, read_ply, write_ply
+from wast3d.procedural import style_scene
+
+
+@pytest.mark.parametrize("name,ground", [("pebbles", True), ("grass", True), ("wicker", False), ("stones", True)])
+def test_procedural_styles_label_every_gaussian_by_element(name, ground):
+    s = style_scene(name, 6000)
+    e = s.element
+    assert e is not None and e.shape == (len(s),) and int(e.min()) >= 0
+    assert bool((e == 0).any()) == ground  # the ground is 0; a weave has none
+    # each element is one compact thing: its Gaussians lie closer together than the patch is wide
+    for j in e.unique()[e.unique() > 0][:5]:
+        p = s.means[e == j]
+        assert float((p - p.mean(0)).norm(dim=1).max()) < 1.0 if name != "wicker" else True
+
+
+def test_element_labels_round_trip_through_ply_and_are_optional(tmp_path):
+    s = style_scene("pebbles", 3000)
+    write_ply(tmp_path / "a.ply", s)
+    r = read_ply(tmp_path / "a.ply")
+    assert torch.equal(r.element, s.element)
+    plain = random_scene(50)
+    write_ply(tmp_path / "b.ply", plain)
+    assert read_ply(tmp_path / "b.ply").element is None
+    # a scene without labels is written in the reference layout: no extra property
+    assert b"property int element" not in (tmp_path / "b.ply").read_bytes()[:2000]
+    assert b"property int element" in (tmp_path / "a.ply").read_bytes()[:2000]
+
+
+def test_negative_labels_name_the_file_and_property(tmp_path):
+    s = style_scene("pebbles", 2000)
+    s.element = s.element.clone()
+    s.element[3] = -1
+    write_ply(tmp_path / "bad.ply", s)
+    with pytest.raises(PlyError, match=r"bad\.ply.*'element'.*negative"):
+        read_ply(tmp_path / "bad.ply")
+
+
+def test_labels_follow_subset_concat_and_transform():
+    s = style_scene("stones", 3000)
+    idx = torch.tensor([5, 1, 900, 17])
+    assert torch.equal(s.subset(idx).element, s.element[idx])
+    assert torch.equal(s.subset(s.element > 0).element, s.element[s.element > 0])
+    both = GaussianScene.concat([s.subset(idx), s.subset(idx)])
+    assert torch.equal(both.element, s.element[idx].repeat(2))
+    R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    assert torch.equal(s.transform(R, torch.ones(3), torch.tensor([1.0, 2.0, 0.5])).element, s.element)
+    # a part without labels drops them all (a half-labelled result would mislead the metrics)
+    assert GaussianScene.concat([s.subset(idx), random_scene(4)]).element is None
+    with pytest.raises(ValueError, match="element"):
+        GaussianScene(**s.tensors(), element=s.element[:-1])
+
+
+def test_transfer_takes_the_nearest_source_label():
+    s = style_scene("pebbles", 4000)
+    g = torch.Generator().manual_seed(0)
+    jitter = s.means + 1e-4 * torch.randn(s.means.shape, generator=g)
+    assert torch.equal(transfer_elements(jitter, s.means, s.element), s.element)
+
+
+def test_element_share_of_rendered_label_channel():
+    from wast3d.cameras import Camera, look_at
+    from wast3d.rendering import rasterize
+
+    s = style_scene("pebbles", 6000)
+    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
+                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    def share(scene):
+        m = rasterize(scene, cam, colors=label_colours(scene.element))
+        return element_share(element_pixels(m["rgb"], m["alpha"])[None], m["alpha"][None])
+    full = share(s)
+    assert 0.4 < full < 0.95  # pebbles over sand, seen from above
+    assert share(s.subset(s.element == 0)) == 0.0  # the ground alone: no element pixel
+    assert share(s.subset(s.element > 0)) > 0.97  # the pebbles alone
+    with pytest.raises(ValueError, match="no foreground"):
+        element_share(torch.zeros(1, 4, 4), torch.zeros(1, 4, 4))
+
+
+def _copies(n_el=6, per=40, seed=0):
+    """Element copies as random blobs: positions [N, 3], copy ids [N]."""
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.randn(n_el, 3, generator=g) * 3
+    x = (centres[:, None] + 0.3 * torch.randn(n_el, per, 3, generator=g)).reshape(-1, 3)
+    return x, torch.arange(n_el).repeat_interleave(per)
+
+
+def test_element_intact_controls():
+    cfg = ElementConfig()
+    x, ids = _copies()
+    same = element_intact(x, x, ids, cfg)
+    assert same["intact"] == 1.0 and same["copies"] == 6  # the collage: whole by construction
+    R = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(1)))[0]
+    moved = torch.cat([x[ids == j] @ R.T + 5 * j for j in range(6)])
+    assert element_intact(x, moved, ids, cfg)["intact"] == 1.0  # each copy moved rigidly: intact
+    g = torch.Generator().manual_seed(2)
+    confetti = x[torch.randperm(len(x), generator=g)]
+    assert element_intact(x, confetti, ids, cfg)["intact"] < 0.05  # Gaussians shuffled between elements
+    assert element_intact(x, x * torch.tensor([1.0, 1.0, 0.2]), ids, cfg)["intact"] < 0.6  # squashed
+    small = x + 0.03 * torch.randn(x.shape, generator=g)  # jitter of 10 % of an element's size
+    assert element_intact(x, small, ids, cfg)["intact"] > 0.9
+    # the ground (-1) and slivers below min_size are left out
+    ids2 = ids.clone()
+    ids2[:40] = -1
+    assert element_intact(x, x, ids2, cfg)["copies"] == 5
+    assert element_intact(x[:3], x[:3], ids[:3], cfg)["intact"] is None
+
+
+def test_copy_ids_separate_clusters_and_the_ground():
+    el = torch.tensor([0, 1, 1, 2, 1])
+    cl = torch.tensor([0, 0, 1, 1, 1])
+    c = copy_ids(el, cl)
+    assert c[0] == -1 and c[1] != c[2] and c[2] == c[4] and c[3] != c[4]
+
+
+def test_element_diameter_of_pebbles():
+    s = style_scene("pebbles", 20000)
+    d = element_diameter(s.means, s.element)
+    assert 0.15 < d < 0.4  # radii 0.08-0.18 in a 2 x 2 patch
+    with pytest.raises(ValueError, match="no element"):
+        element_diameter(s.means[:3], torch.zeros(3, dtype=torch.long))

@@ -1,0 +1,138 @@
+"""Stage 8, element metrics: does the result show the style's elements, whole?
+
+A labelled style (``GaussianScene.element``: 0 = the ground, 1.. = one pebble, blade, strand or
+stone each; :mod:`wast3d.procedural`, or taken from the nearest source Gaussian for a style trained
+from a procedural one's renders) carries its labels through selection, stylization and rescale, so
+every Gaussian of a result knows which element of the style it came from.
+
+``element_share``
+    The share of a render's foreground pixels (alpha > 0.5) that element Gaussians draw: the
+    label channel ``e = render(colours = [element > 0]) / alpha`` (the same rasterizer, the same
+    cameras as the RGB frames), a pixel counting when ``e > 0.5``. Reported for the result (its
+    turntable) and for the style (its texture reference: the style at the result's pixel scale), and
+    as their ratio (1 = the style's own mix of elements and ground; a result of sand alone scores 0).
+    An unlabelled result (the content, a colour transfer) draws no element pixel: 0.
+
+``element_intact``
+    How whole the elements stay. Each *copy* of an element in the result (the Gaussians of one element
+    selected by one cluster) is compared with itself before the optimization (the collage: the same
+    Gaussians registered onto the content, rigid within the cluster). For each Gaussian j of a copy,
+    with at most ``sample`` members k of the copy and r the copy's RMS radius before,
+
+        d_j = q90_k | |x'_j - x'_k| - |x_j - x_k| | / r        (x before, x' after)
+
+    and the score is the share of element Gaussians with d_j <= ``tol`` (default 0.25: a pebble may
+    bend by a quarter of its own size). The 90th percentile, not the median, because flattening
+    changes only the distances across the flattened axis (a blob squashed to 20 % of its height keeps
+    its median distance change at 13 %). Rigid motions score 1: the collage scores 1 by construction;
+    an element torn into confetti or squashed flat scores near 0. Copies of fewer than ``min_size`` Gaussians are left out
+    (an element cut at the edge of a cluster's footprint to a sliver has no shape to keep).
+
+``element_diameter``
+    The median over elements of twice the 90th-percentile distance of an element's Gaussians to its
+    centroid (robust to a stray Gaussian); the length that :mod:`wast3d.registration` uses to put
+    elements of a chosen size on the content.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class ElementConfig:
+    tol: float = 0.25  # element_intact: relative distance change a Gaussian may have and count as intact
+    sample: int = 32  # element_intact: members per copy its distances are measured to
+    min_size: int = 4  # element_intact: copies with fewer Gaussians are left out
+    min_alpha: float = 0.5  # element_share: foreground pixels
+    seed: int = 0
+
+    def __post_init__(self):
+        if not 0 < self.tol or self.sample < 2 or self.min_size < 2 or not 0 < self.min_alpha < 1:
+            raise ValueError("elements: need tol > 0, sample >= 2, min_size >= 2, 0 < min_alpha < 1")
+
+
+def label_colours(element: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
+    """[N] labels -> [N, 3] colours for the label channel: 1 for element Gaussians, 0 for the ground."""
+    return (element > 0).to(dtype)[:, None].expand(-1, 3).contiguous()
+
+
+def element_pixels(label_rgb: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Label-channel render (background 0) [H, W, 3] and alpha [H, W] -> the element share per pixel
+    [H, W] in [0, 1] (``rgb / alpha``; 0 where nothing is drawn)."""
+    return (label_rgb[..., 0] / alpha.clamp_min(1e-6)).clamp(0, 1) * (alpha > 1e-6)
+
+
+def element_share(element_frames: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.5) -> float:
+    """element_frames: [V, H, W] per-pixel element share (:func:`element_pixels`), alpha [V, H, W] ->
+    the share of foreground pixels (alpha > min_alpha) that element Gaussians draw (e > 0.5)."""
+    fg = alpha > min_alpha
+    if not bool(fg.any()):
+        raise ValueError(f"element share: no foreground pixel (alpha > {min_alpha})")
+    return float(((element_frames > 0.5) & fg).sum() / fg.sum())
+
+
+def element_intact(before: torch.Tensor, after: torch.Tensor, copies: torch.Tensor, cfg: ElementConfig) -> dict:
+    """before, after: [N, 3] positions of the same Gaussians (the collage and the result, one frame);
+    copies: [N] int64 id of each Gaussian's element copy (-1: the ground, left out) -> ``{"intact": share,
+    "copies": number measured, "gaussians": element Gaussians measured, "median_distortion": median d_j}``."""
+    g = torch.Generator().manual_seed(cfg.seed)
+    ok = copies >= 0
+    ids, inv, counts = torch.unique(copies[ok], return_inverse=True, return_counts=True)
+    idx_all = ok.nonzero().squeeze(1)
+    order = torch.argsort(inv, stable=True)
+    starts = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    b, a = before.double(), after.double()
+    dist, n_copies = [], 0
+    for c in range(len(ids)):
+        if int(counts[c]) < cfg.min_size:
+            continue
+        members = idx_all[order[starts[c]:starts[c + 1]]]
+        ref = members if len(members) <= cfg.sample else members[torch.randperm(len(members), generator=g)[:cfg.sample]]
+        d0 = torch.cdist(b[members], b[ref])
+        d1 = torch.cdist(a[members], a[ref])
+        r = float((b[members] - b[members].mean(0)).square().sum(1).mean().sqrt())
+        if r <= 0:  # coincident Gaussians: no shape to keep
+            continue
+        dist.append(torch.quantile((d1 - d0).abs(), 0.9, dim=1) / r)
+        n_copies += 1
+    if not dist:
+        return {"intact": None, "copies": 0, "gaussians": 0, "median_distortion": None}
+    d = torch.cat(dist)
+    d = d[torch.isfinite(d)]
+    return {"intact": float((d <= cfg.tol).double().mean()), "copies": n_copies, "gaussians": len(d),
+            "median_distortion": float(d.median())}
+
+
+def copy_ids(element: torch.Tensor, clusters: torch.Tensor) -> torch.Tensor:
+    """[N] element labels and [N] cluster of each result Gaussian -> [N] id of its element copy
+    (cluster, element), -1 for the ground."""
+    key = clusters.long() * (int(element.max()) + 1) + element.long()
+    return torch.where(element > 0, key, torch.full_like(key, -1))
+
+
+def element_diameter(means: torch.Tensor, element: torch.Tensor, min_size: int = 4) -> float:
+    """Median element diameter of a labelled scene (see the module docstring); means [N, 3]."""
+    m = means.detach().double().numpy()
+    e = element.numpy()
+    diam = []
+    for j in np.unique(e[e > 0]):
+        p = m[e == j]
+        if len(p) < min_size:
+            continue
+        diam.append(2 * np.quantile(np.linalg.norm(p - p.mean(0), axis=1), 0.9))
+    if not diam:
+        raise ValueError("element diameter: no element with at least %d Gaussians" % min_size)
+    return float(np.median(diam))
+
+
+def transfer_elements(target: torch.Tensor, source: torch.Tensor, source_element: torch.Tensor) -> torch.Tensor:
+    """Labels for a scene trained from renders of a labelled one: each target Gaussian [N, 3] takes the
+    label of its nearest source Gaussian (source [M, 3], source_element [M]) -> [N] int64."""
+    from .geometry import knn
+
+    _, idx = knn(target.detach().float(), source.detach().float(), 1)
+    return source_element[idx[:, 0]].long()
