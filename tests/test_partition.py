@@ -4,9 +4,9 @@ import torch
 
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene
-from wast3d.registration import RegistrationConfig, random_rotation, register
+from wast3d.registration import RegistrationConfig, base_scale, random_rotation, register, relief_length
 from wast3d.selection import SelectConfig, select, select_footprint
-from wast3d.surface import SurfaceConfig, sample_surface
+from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
 
 D64 = torch.float64
 
@@ -35,7 +35,9 @@ def test_registration_recovers_known_transform():
         labs.append(torch.full((len(style),), i))
         truth.append((R, s, t))
     P, L = torch.cat(pts), torch.cat(labs)
-    reg = register(P, L, style, RegistrationConfig(landings=1))
+    # the density rule puts s0 at the true scale's neighbourhood (element_scale would set it from the
+    # content's size, which four scattered copies do not have)
+    reg = register(P, L, style, RegistrationConfig(landings=1, element_scale=0))
     for i, (R, s, t) in enumerate(truth):
         m = L == i
         err = (reg.apply(P[m], L[m]) - s * ((P[m] - t) @ R.T)).norm(dim=1).mean() / reg.style_spacing
@@ -237,3 +239,86 @@ def test_select_config_checks_mode_and_radius():
         SelectConfig(mode="ball")
     with pytest.raises(ValueError, match="radius"):
         SelectConfig(mode="footprint", radius=0.0)
+
+
+def _trained_like_patch(seed=0):
+    """A procedural pebble patch plus what training adds: floaters far outside, translucent haze over
+    it and opaque Gaussians inside the pebbles (labels kept; index sets returned)."""
+    from wast3d.procedural import style_scene
+
+    g = torch.Generator().manual_seed(seed)
+    s = style_scene("pebbles", 20000)  # a ground dense enough to hide what is under it
+    n = len(s)
+    far = (torch.rand(300, 3, generator=g) - 0.5) * 8
+    far = far[(far.abs() > 1.5).any(1)]
+    haze = torch.cat([torch.rand(400, 2, generator=g) * 2 - 1, 0.05 + 0.1 * torch.rand(400, 1, generator=g)], 1)
+    # inside the pebbles (their shells hide them from above): 6 around each pebble's centroid
+    cents = torch.stack([s.means[s.element == j].mean(0) for j in s.element.unique() if j > 0])
+    buried = (cents[:, None] + 0.01 * torch.randn(len(cents), 6, 3, generator=g)).reshape(-1, 3)
+    extra = [GaussianScene.from_activated(p, torch.full((len(p), 3), 0.01), opacities=o)
+             for p, o in ((far, 0.9), (haze, 0.02), (buried, 0.95))]
+    for e in extra:
+        e.element = torch.zeros(len(e), dtype=torch.long)
+    out = GaussianScene.concat([s, *extra])
+    sizes = [n, len(far), len(haze), len(buried)]
+    bounds = np.cumsum([0] + sizes)
+    return out, {k: torch.arange(bounds[i], bounds[i + 1]) for i, k in enumerate(("patch", "far", "haze", "buried"))}
+
+
+def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
+    caplog.set_level("INFO")
+    scene, parts = _trained_like_patch()
+    idx, rep = clean_style(scene, StyleCleanConfig(views=12, resolution=128))
+    kept = torch.zeros(len(scene), dtype=torch.bool)
+    kept[idx] = True
+    # what the patch looks like stays: its renders from above with and without the cleaning agree
+    # (what goes of it is hidden: the sand under the pebbles, their undersides)
+    from wast3d.render import fit_orbit, render_views
+
+    patch = scene.subset(parts["patch"])
+    cams = fit_orbit(patch, 3, 96, elevations_deg=(40.0, 70.0))
+    before = render_views(patch, cams)
+    after = render_views(scene.subset(idx), cams)
+    assert max(float((a["rgb"] - b["rgb"]).abs().mean()) for a, b in zip(after, before)) < 0.01
+    assert float(kept[parts["patch"]].double().mean()) > 0.6
+    assert int(kept[parts["far"]].sum()) == 0  # floaters outside the patch box
+    assert int(kept[parts["haze"]].sum()) == 0  # translucent
+    assert float(kept[parts["buried"]].double().mean()) < 0.2  # hidden inside the pebbles, seen from above
+    idx_nv, _ = clean_style(scene, StyleCleanConfig(visibility=False))
+    assert float(torch.isin(parts["buried"], idx_nv).double().mean()) > 0.9  # only the visibility test finds them
+    assert rep["removed_outside_patch"] >= len(parts["far"]) and rep["kept"] == len(idx)
+    assert "style cleaning: kept" in caplog.text
+    idx, rep = clean_style(scene, StyleCleanConfig(enabled=False))
+    assert len(idx) == len(scene) and rep["skipped"]
+    with pytest.raises(ValueError, match="no Gaussians"):
+        clean_style(scene.subset(torch.zeros(0, dtype=torch.long)), StyleCleanConfig())
+
+
+def test_relief_length_follows_element_size_not_gaussian_count():
+    """The rule of registration.base_scale: the relief length of pebbles twice as large is twice as
+    long; sampling the same patch with 3x fewer Gaussians, or adding floaters, barely moves it; a flat
+    patch has none."""
+    from wast3d.procedural import style_scene
+
+    a = style_scene("pebbles", 30000)
+    L = relief_length(a.means)
+    assert abs(relief_length(style_scene("pebbles", 10000).means) / L - 1) < 0.15
+    assert abs(relief_length(a.means * torch.tensor([2.0, 2.0, 2.0])) / L - 2) < 0.05
+    flat = torch.cat([torch.rand(2000, 2) * 2 - 1, torch.zeros(2000, 1)], 1)
+    with pytest.raises(ValueError, match="flat"):
+        relief_length(flat)
+
+
+def test_base_scale_rules():
+    from wast3d.procedural import content_scene, style_scene
+
+    c = content_scene("sphere", 3000).means.double()
+    st = style_scene("pebbles", 8000).means.double()
+    s0, how = base_scale(c, st, RegistrationConfig())
+    assert how["rule"] == "element_scale"
+    # one relief length of the style covers element_scale of the content's diameter
+    assert abs(how["relief_length"] / s0 / how["content_diameter"] - RegistrationConfig().element_scale) < 1e-9
+    s1, _ = base_scale(c, st, RegistrationConfig(element_scale=0.14))
+    assert abs(s1 / s0 - 0.5) < 1e-9  # elements twice as large on the content
+    assert base_scale(c, st, RegistrationConfig(scale=3.0))[0] == 3.0
+    assert base_scale(c, st, RegistrationConfig(element_scale=0))[1]["rule"].startswith("density")

@@ -16,17 +16,18 @@ every Gaussian of a result knows which element of the style it came from.
 ``element_intact``
     How whole the elements stay. Each *copy* of an element in the result (the Gaussians of one element
     selected by one cluster) is compared with itself before the optimization (the collage: the same
-    Gaussians registered onto the content, rigid within the cluster). For each Gaussian j of a copy,
-    with at most ``sample`` members k of the copy and r the copy's RMS radius before,
+    Gaussians registered onto the content, rigid within the cluster). The copy's best similarity
+    x' ~ s R x + t (orthogonal Procrustes with scale, R proper) is fitted, and each of its Gaussians
+    scores its residual after that fit over the copy's RMS radius after it,
 
-        d_j = q90_k | |x'_j - x'_k| - |x_j - x_k| | / r        (x before, x' after)
+        d_j = | x'_j - (s R x_j + t) | / ( s * rms_k |x_k - mean x| )
 
-    and the score is the share of element Gaussians with d_j <= ``tol`` (default 0.25: a pebble may
-    bend by a quarter of its own size). The 90th percentile, not the median, because flattening
-    changes only the distances across the flattened axis (a blob squashed to 20 % of its height keeps
-    its median distance change at 13 %). Rigid motions score 1: the collage scores 1 by construction;
-    an element torn into confetti or squashed flat scores near 0. Copies of fewer than ``min_size`` Gaussians are left out
-    (an element cut at the edge of a cluster's footprint to a sliver has no shape to keep).
+    A Gaussian is intact when d_j <= ``tol`` (default 0.25: a pebble may bend by a quarter of its own
+    size); the score is the share of intact element Gaussians. Moved, turned or uniformly resized
+    elements score 1 (scale readjustment resizes them on purpose), the collage 1 by construction; an
+    element torn into confetti or squashed flat scores near 0. Copies of fewer than ``min_size``
+    Gaussians are left out (an element cut at the edge of a cluster's footprint to a sliver has no
+    shape to keep).
 
 ``element_diameter``
     The median over elements of twice the 90th-percentile distance of an element's Gaussians to its
@@ -44,15 +45,13 @@ import torch
 
 @dataclass
 class ElementConfig:
-    tol: float = 0.25  # element_intact: relative distance change a Gaussian may have and count as intact
-    sample: int = 32  # element_intact: members per copy its distances are measured to
+    tol: float = 0.25  # element_intact: residual after the copy's best similarity, in copy radii
     min_size: int = 4  # element_intact: copies with fewer Gaussians are left out
     min_alpha: float = 0.5  # element_share: foreground pixels
-    seed: int = 0
 
     def __post_init__(self):
-        if not 0 < self.tol or self.sample < 2 or self.min_size < 2 or not 0 < self.min_alpha < 1:
-            raise ValueError("elements: need tol > 0, sample >= 2, min_size >= 2, 0 < min_alpha < 1")
+        if not 0 < self.tol or self.min_size < 2 or not 0 < self.min_alpha < 1:
+            raise ValueError("elements: need tol > 0, min_size >= 2, 0 < min_alpha < 1")
 
 
 def label_colours(element: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
@@ -75,35 +74,40 @@ def element_share(element_frames: torch.Tensor, alpha: torch.Tensor, min_alpha: 
     return float(((element_frames > 0.5) & fg).sum() / fg.sum())
 
 
+def similarity_residuals(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """d_j of the module docstring for one copy: before, after [n, 3] -> [n] (float64)."""
+    b = before.double() - before.double().mean(0)
+    a = after.double() - after.double().mean(0)
+    U, S, Vt = torch.linalg.svd(b.T @ a)
+    D = torch.ones(3, dtype=b.dtype)
+    D[2] = torch.sign(torch.det(U @ Vt))  # a proper rotation (no reflection)
+    R = (U * D) @ Vt  # a ~ s b R
+    s = float((S * D).sum() / b.square().sum().clamp_min(1e-300))
+    rms = float(b.square().sum(1).mean().sqrt())
+    return (a - s * b @ R).norm(dim=1) / max(abs(s) * rms, 1e-300)
+
+
 def element_intact(before: torch.Tensor, after: torch.Tensor, copies: torch.Tensor, cfg: ElementConfig) -> dict:
     """before, after: [N, 3] positions of the same Gaussians (the collage and the result, one frame);
     copies: [N] int64 id of each Gaussian's element copy (-1: the ground, left out) -> ``{"intact": share,
     "copies": number measured, "gaussians": element Gaussians measured, "median_distortion": median d_j}``."""
-    g = torch.Generator().manual_seed(cfg.seed)
     ok = copies >= 0
     ids, inv, counts = torch.unique(copies[ok], return_inverse=True, return_counts=True)
     idx_all = ok.nonzero().squeeze(1)
     order = torch.argsort(inv, stable=True)
     starts = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
-    b, a = before.double(), after.double()
-    dist, n_copies = [], 0
+    dist = []
     for c in range(len(ids)):
         if int(counts[c]) < cfg.min_size:
             continue
         members = idx_all[order[starts[c]:starts[c + 1]]]
-        ref = members if len(members) <= cfg.sample else members[torch.randperm(len(members), generator=g)[:cfg.sample]]
-        d0 = torch.cdist(b[members], b[ref])
-        d1 = torch.cdist(a[members], a[ref])
-        r = float((b[members] - b[members].mean(0)).square().sum(1).mean().sqrt())
-        if r <= 0:  # coincident Gaussians: no shape to keep
-            continue
-        dist.append(torch.quantile((d1 - d0).abs(), 0.9, dim=1) / r)
-        n_copies += 1
+        if float((before[members] - before[members].mean(0)).abs().max()) <= 0:
+            continue  # coincident Gaussians: no shape to keep
+        dist.append(similarity_residuals(before[members], after[members]))
     if not dist:
         return {"intact": None, "copies": 0, "gaussians": 0, "median_distortion": None}
     d = torch.cat(dist)
-    d = d[torch.isfinite(d)]
-    return {"intact": float((d <= cfg.tol).double().mean()), "copies": n_copies, "gaussians": len(d),
+    return {"intact": float((d <= cfg.tol).double().mean()), "copies": len(dist), "gaussians": len(d),
             "median_distortion": float(d.median())}
 
 

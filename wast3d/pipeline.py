@@ -263,7 +263,7 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     turntable against the style's texture reference, and ``element_intact`` against the collage
     (the positions before optimization in ``stylize_npz``)."""
     from .elements import copy_ids, element_intact, element_share
-    from .render import read_element_frames
+    from .render import read_element_frames, read_frames
 
     out = {"element_share": None, "element_share_style": None, "element_share_ratio": None, "element_intact": None}
     style_el = read_element_frames(texture_reference)

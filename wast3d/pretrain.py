@@ -18,7 +18,14 @@ The paper's regularizers, on the activated scales s = exp(log_scales) of each Ga
   s_hat given, or (0) the median of all scales at that step, detached: a pull towards one common size
   that does not fix its level;
 - weights ``aniso_weight`` / ``unif_weight``; on for style scenes and off for content scenes by default
-  (the paper regularizes style scenes).
+  (the paper regularizes style scenes);
+- ours, not the paper's: binary opacity ``L_opa = mean_i o_i (1 - o_i)`` (weight ``opacity_weight``,
+  with the regularizers, from the end of densification on, whose opacity resets it would fight).
+  A trained surface is otherwise a stack of translucent layers whose colours (pink under green, say)
+  sum to the right one only from the training views' side; a stylization wraps the style's elements
+  around the content and shows them from every side, so those layers came out as haze and tints the
+  style's renders never show (the demo's trained pebbles: median opacity 0.14). Opaque Gaussians are
+  a surface from every side, as the procedural styles' discs are.
 
 Initialization: a given point cloud / 3DGS PLY, or ``init_points`` random points in a cube around the
 cameras' look-at centre of half-size ``init_extent`` (0: 0.35 x the camera distance, 1.41 for
@@ -75,6 +82,7 @@ class PretrainConfig:
     aniso_weight: float = 0.1
     aniso_ratio: float = 3.0
     unif_weight: float = 0.1
+    opacity_weight: float = 0.01  # binary opacity (with regularize; from refine_stop on); 0: off
     target_scale: float = 0.0
     checkpoint_every: int = 1000
     eval_every: int = 0  # 0: only at the end
@@ -125,6 +133,12 @@ def unif_loss(log_scales: torch.Tensor, target: float = 0.0) -> torch.Tensor:
 
 
 # ---- parameters ----------------------------------------------------------------------------------
+
+
+def opacity_loss(opacity_logits: torch.Tensor) -> torch.Tensor:
+    """``mean_i o_i (1 - o_i)``, o = sigmoid(logit): 0 when every Gaussian is opaque or gone."""
+    o = torch.sigmoid(opacity_logits)
+    return (o * (1 - o)).mean()
 
 
 def to_params(scene: GaussianScene, sh_degree: int) -> torch.nn.ParameterDict:
@@ -191,7 +205,7 @@ class Trainer:
         self.optimizers = {k: torch.optim.Adam([{"params": self.params[k], "lr": lr, "name": k}], eps=1e-15)
                            for k, lr in lrs.items()}
         self.lr_means0 = lrs["means"]
-        stop = cfg.refine_stop or int(cfg.iterations * 0.75)
+        self.refine_stop = stop = cfg.refine_stop or int(cfg.iterations * 0.75)
         self.strategy = DefaultStrategy(refine_start_iter=cfg.refine_start, refine_stop_iter=stop,
                                         refine_every=cfg.refine_every, reset_every=cfg.reset_every,
                                         grow_grad2d=cfg.grow_grad2d, prune_opa=cfg.prune_opa)
@@ -257,6 +271,10 @@ class Trainer:
             lu = unif_loss(self.params["scales"], cfg.target_scale)
             loss = loss + cfg.aniso_weight * la + cfg.unif_weight * lu
             terms.update(aniso=la.item(), unif=lu.item())
+            if cfg.opacity_weight > 0 and self.step >= self.refine_stop:
+                lo = opacity_loss(self.params["opacities"])
+                loss = loss + cfg.opacity_weight * lo
+                terms["opacity"] = lo.item()
         loss.backward()
         frac = self.step / max(cfg.iterations, 1)
         self.optimizers["means"].param_groups[0]["lr"] = self.lr_means0 * cfg.lr_means_final_factor**frac

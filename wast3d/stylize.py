@@ -85,6 +85,8 @@ class StylizeConfig:
     device: str = "auto"  # "auto": CUDA when available
     blur_units: str = "cluster"  # "cluster": gamma relative to each cluster's radius; "scene": see above
     batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
+    smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
+    smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
     sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
 
     def __post_init__(self):
@@ -94,6 +96,8 @@ class StylizeConfig:
             raise ValueError(f"stylize.loss must be 'sinkhorn' or 'arap', got '{self.loss}'")
         if self.optimizer not in ("adam", "flow"):
             raise ValueError(f"stylize.optimizer must be 'adam' or 'flow', got '{self.optimizer}'")
+        if self.smooth_k < 1 or self.smooth_passes < 0:
+            raise ValueError(f"stylize: need smooth_k >= 1 and smooth_passes >= 0 (got {self.smooth_k}, {self.smooth_passes})")
         if self.batch < 0:
             raise ValueError(f"stylize.batch must be >= 0 (0: every cluster in one solve), got {self.batch}")
         if self.blur_units not in BLUR_UNITS:
@@ -155,6 +159,30 @@ class ClusterPair:
     blur: float
 
 
+def neighbour_graph(ys: list[torch.Tensor], k: int) -> torch.Tensor:
+    """[sum M, k] indices into the packed style rows: each row's k nearest neighbours (itself included)
+    among its own cluster's style Gaussians, in their positions before optimization."""
+    out, off = [], 0
+    for y in ys:
+        kk = min(k, len(y))
+        _, idx = knn(y.double().cpu(), y.double().cpu(), kk)
+        if kk < k:  # a cluster smaller than k: repeat its own row
+            idx = torch.cat([idx, idx[:, :1].expand(-1, k - kk)], 1)
+        out.append(idx + off)
+        off += len(y)
+    return torch.cat(out) if out else torch.zeros(0, k, dtype=torch.long)
+
+
+def smooth_displacements(g: torch.Tensor, nb: torch.Tensor, passes: int) -> torch.Tensor:
+    """g: [M, D] per-Gaussian step directions, nb: [M, k] neighbours -> g averaged over the neighbours
+    ``passes`` times (a discrete diffusion of the displacement field over the style's own surface, of
+    radius about sqrt(passes) neighbourhoods). Gaussians of one element then take one displacement and
+    move together, as the Sinkhorn flow alone does only at scales above gamma."""
+    for _ in range(passes):
+        g = g[nb].mean(1)
+    return g
+
+
 def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tensor, y_rgb: torch.Tensor,
                     cfg: StylizeConfig) -> ClusterResult:
     """One term of eq. 9 alone (the per-pair path). x_*: content cluster in the style frame [N,3]; y_*:
@@ -206,6 +234,7 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     losses: list[list[float]] = [[] for _ in pairs]
     pot = None
     araps = [_ArapState(yn, cfg.arap_k) for yn in ys] if cfg.loss == "arap" else None
+    nb = neighbour_graph(ys, cfg.smooth_k).to(dev) if cfg.smooth_passes else None
     steps = tqdm(range(cfg.iterations), desc=f"stylize steps ({len(pairs)} clusters)", mininterval=2.0,
                  disable=not progress)
     for it in steps:
@@ -231,6 +260,8 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
             Y.grad.mul_(flow)
             if dC.grad is not None:
                 dC.grad.mul_(flow)
+        if nb is not None:
+            Y.grad = smooth_displacements(Y.grad, nb, cfg.smooth_passes)
         bad = ~torch.isfinite(Y.grad).all(1)
         if dC.grad is not None:
             bad |= ~torch.isfinite(dC.grad).all(1)

@@ -23,8 +23,12 @@ positive elevations), so visibility is judged from above only; and a trained pat
 far outside it (the demo's trained pebbles span 3.8 x 3.7 x 3.3 units for a 2 x 2 x 0.16 patch), so
 Gaussians outside the patch's *core box* (per-axis ``core_quantile`` .. 1 - ``core_quantile`` of the
 opaque Gaussians, widened by ``core_margin`` of its size on each side) go first. Nearly transparent
-Gaussians (haze that no training view resolves) and those hidden under the visible surface are what
-put tints into a result that the style's renders never show.
+Gaussians (haze that no training view resolves) and hidden ones are what put tints into a result
+that the style's renders never show. *Hidden* is judged by what each Gaussian draws
+(:func:`seen_fraction`: the share of it that its best view from above shows), not by its centre's
+distance to the rendered depth: a trained surface is made of overlapping Gaussians whose centres lie
+off it, and the depth test at 0.02 scene radii removed visible ones (dark spots in the pebbles) while
+at 0.05 it kept opaque interior ones.
 """
 
 from __future__ import annotations
@@ -67,12 +71,14 @@ class StyleCleanConfig:
     visibility: bool = True
     views: int = 24
     resolution: int = 200
-    depth_tolerance: float = 0.05  # 0.02 also removed surface Gaussians of the trained pebbles (dark spots)
+    min_seen: float = 0.05  # hidden: less than this fraction of a Gaussian is seen in its best view
     seed: int = 0
 
     def __post_init__(self):
         if not 0 <= self.core_quantile < 0.5 or self.core_margin < 0 or not 0 <= self.min_opacity < 1:
             raise ValueError("style_clean: need 0 <= core_quantile < 0.5, core_margin >= 0, 0 <= min_opacity < 1")
+        if self.min_seen < 0:
+            raise ValueError(f"style_clean.min_seen must be >= 0, got {self.min_seen}")
 
 
 CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
@@ -105,6 +111,34 @@ def visible_mask(scene: GaussianScene, views: int, resolution: int, tol: float,
         ok = (a > 0.5) & ((z[idx] - d).abs() < tol * radius)
         seen[idx[ok]] = True
     return seen
+
+
+def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_deg: tuple) -> torch.Tensor:
+    """[N] how much of each Gaussian the renders show, in its best of ``views`` orbit views:
+
+        f_i = max_v  (sum_pixels alpha_i T_i) * (z_i / f)^2 / (o_i * 2 pi s_1 s_2)
+
+    the total blending weight it gets (pixels; exactly the gradient of the rendered image's sum with
+    respect to per-Gaussian colours of 1) over the weight it would have alone and face-on (its opacity
+    times the integral of its footprint, s_1 s_2 its two largest scales, z_i / f the pixel size at its
+    depth). About 1 for an unoccluded Gaussian seen face-on, 0 for one hidden in every view; independent
+    of the resolution and of the Gaussians' sizes."""
+    from .render import fit_orbit
+    from .rendering import rasterize
+
+    best = torch.zeros(len(scene), dtype=torch.float64)
+    s = scene.detach()
+    sc = s.scales.double().sort(dim=1, descending=True).values
+    alone = s.opacities.double() * 2 * torch.pi * sc[:, 0] * sc[:, 1]
+    for cam in fit_orbit(s, views, resolution, elevations_deg=elevations_deg):
+        ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
+        out = rasterize(s, cam, colors=ones)
+        (w,) = torch.autograd.grad(out["rgb"][..., 0].sum(), ones)
+        V = cam.world_to_cam.to(s.means)
+        z = (s.means @ V[2, :3] + V[2, 3]).double()
+        f = w[:, 0].double().cpu() * (z / cam.fx) ** 2 / alone.clamp_min(1e-30)
+        best = torch.maximum(best, torch.where(z > cam.near, f, torch.zeros_like(f)))
+    return best
 
 
 def _drop(keep: torch.Tensor, out: torch.Tensor, report: dict, key: str) -> None:
@@ -204,8 +238,12 @@ def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tens
     _drop(keep, scene.opacities.detach() < cfg.min_opacity, report, "removed_low_opacity")
     _outliers(scene, keep, cfg.outlier_k, cfg.outlier_quantile, report)
     if cfg.visibility:
-        _hidden(scene, keep, cfg.views, cfg.resolution, cfg.depth_tolerance, STYLE_ELEVATIONS, report)
+        idx = keep.nonzero().squeeze(1)
+        w = torch.zeros(n, dtype=torch.float64)
+        if len(idx):
+            w[idx] = seen_fraction(scene.subset(idx), cfg.views, cfg.resolution, STYLE_ELEVATIONS)
+        _drop(keep, w < cfg.min_seen, report, "removed_hidden")
     idx = keep.nonzero().squeeze(1)
     if len(idx) == 0:
-        raise ValueError("style cleaning removed every Gaussian; relax min_opacity / depth_tolerance")
+        raise ValueError("style cleaning removed every Gaussian; relax min_opacity / min_seen")
     return idx, _kept(report, idx, n, "style cleaning")

@@ -1,0 +1,92 @@
+"""Sweep stylization settings on one pair through the workflow's own stage functions (stylize, rescale,
+render, evaluate of wast3d.pipeline), reading the pair's partition artifacts (clusters, registration,
+selection) from a results folder the workflow made, and write every metric of evaluate per setting.
+
+    .venv/bin/python benchmarks/element_sweep.py ant__pebbles --set smooth_passes=0,4,8 [--results results]
+
+Each setting is one override of the experiment's stylize block (``--experiment``, default ``default``, as
+the config file defines it); the rows also hold the run time of the Sinkhorn stage. Output:
+``results/benchmarks/element_sweep_<pair>.csv`` and a sheet of the close-ups (RGB and normals) per
+setting, ``element_sweep_<pair>.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def parse_value(v: str):
+    return yaml.safe_load(v)
+
+
+def main(argv=None) -> None:
+    from wast3d import pipeline
+    from wast3d.render import comparison_sheet
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("pair", help="CONTENT__STYLE, as under results/stylize")
+    ap.add_argument("--set", required=True, help="KEY=V1,V2,... (a stylize key, e.g. smooth_passes=0,4)")
+    ap.add_argument("--experiment", default="default")
+    ap.add_argument("--results", type=Path, default=ROOT / "results")
+    ap.add_argument("--config", type=Path, default=ROOT / "config" / "config.yaml")
+    a = ap.parse_args(argv)
+    cfg = yaml.safe_load(a.config.read_text())
+    exp = cfg["experiments"][a.experiment]
+    part = exp.get("partition", "default")
+    key, values = a.set.split("=", 1)
+    content, style = a.pair.split("__")
+    R = a.results
+    content_ply = R / "scenes" / content / "scene.ply"
+    if (R / "scenes" / content / "surface.ply").exists():
+        content_ply = R / "scenes" / content / "surface.ply"
+    style_ply = R / "scenes" / style / ("style.ply" if (R / "scenes" / style / "style.ply").exists() else "scene.ply")
+    clusters = R / "partition" / content / part / "clusters.npz"
+    reg = R / "register" / a.pair / part / "registration.npz"
+    sel = R / "register" / a.pair / part / "selection.npz"
+    ev = cfg.get("evaluation", {})
+    render_cfg = ev.get("render", {})
+    eval_cfg = {k: ev[k] for k in ("metrics", "texture", "crops", "clip", "elements") if k in ev}
+    out = R / "benchmarks" / "element_sweep" / a.pair
+    rows, cols = [], []
+    for v in values.split(","):
+        val = parse_value(v)
+        name = f"{key}={val}"
+        d = out / name.replace("=", "_")
+        d.mkdir(parents=True, exist_ok=True)
+        params = {**exp.get("stylize", {}), key: val}
+        t = time.perf_counter()
+        pipeline.run_stylize(content_ply, clusters, style_ply, reg, sel, d / "stylized.ply", d / "stylize.npz",
+                             d / "losses.csv", params, progress=False)
+        secs = time.perf_counter() - t
+        pipeline.run_rescale(d / "stylized.ply", d / "stylize.npz", d / "final.ply", exp.get("rescale", {}))
+        pipeline.run_render(d / "final.ply", content_ply, d / "render", render_cfg, progress=False)
+        pipeline.run_evaluate(d / "final.ply", content_ply, style_ply, d / "render", R / "render" / "scenes" / style,
+                              R / "render" / "texture_reference" / a.pair, R / "render" / "pairs" / a.pair / "input",
+                              d / "eval.json", eval_cfg, stylize_npz=d / "stylize.npz")
+        m = json.loads((d / "eval.json").read_text())
+        rows.append({"setting": name, "sinkhorn_seconds": secs,
+                     **{k: v for k, v in m.items() if isinstance(v, (int, float)) or v is None}})
+        cols.append((name, d / "render"))
+        print(pd.DataFrame(rows[-1:]).to_string(index=False), flush=True)
+    bench = R / "benchmarks"
+    df = pd.DataFrame(rows)
+    df.to_csv(bench / f"element_sweep_{a.pair}.csv", index=False)
+    comparison_sheet(cols, bench / f"element_sweep_{a.pair}.png", rows=("closeup_rgb", "closeup_normal"))
+    print(df[["setting", "element_intact", "element_share_ratio", "coverage", "content_chamfer", "relief_w1",
+              "texture_swd", "sinkhorn_seconds"]].to_string(index=False))
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=4)
+    main()
