@@ -322,3 +322,42 @@ def test_base_scale_rules():
     assert abs(s1 / s0 - 0.5) < 1e-9  # elements twice as large on the content
     assert base_scale(c, st, RegistrationConfig(scale=3.0))[0] == 3.0
     assert base_scale(c, st, RegistrationConfig(element_scale=0))[1]["rule"].startswith("density")
+
+
+def test_outward_normals_and_style_up():
+    """Cluster normals of either sign turn outward on a sphere and on a thin tube; a patch's up is the
+    side its elements stand on."""
+    from wast3d.procedural import content_scene, style_scene
+    from wast3d.registration import _segment_mean, outward_normals, style_up
+
+    g = torch.Generator().manual_seed(1)
+    th = torch.rand(6000, generator=g, dtype=D64) * 2 * torch.pi
+    tube = torch.stack([torch.rand(6000, generator=g, dtype=D64) * 4 - 2, 0.3 * th.cos(), 0.3 * th.sin()], 1)
+    for pts in (content_scene("sphere", 4000).means.double(), tube):
+        labels = torch.from_numpy(kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=200))[0]).long()
+        K = int(labels.max()) + 1
+        mu = _segment_mean(pts, labels, K)
+        radial = mu.clone()
+        radial[:, 0] = 0 if pts[:, 0].abs().max() > 1.5 else radial[:, 0]  # the tube: radial about its axis
+        n = radial / radial.norm(dim=1, keepdim=True)
+        flip = torch.where(torch.rand(K, 1, generator=torch.Generator().manual_seed(0)) < 0.5, -1.0, 1.0).double()
+        out = outward_normals(pts, labels, n * flip)
+        assert float(((out * radial).sum(1) > 0).double().mean()) >= 0.9
+    peb = style_scene("pebbles", 6000).means.double()
+    assert float(style_up(peb)[2]) > 0.99
+    assert float(style_up(-peb)[2]) < -0.99  # an upside-down patch: its up points down
+
+
+def test_registration_puts_the_elements_on_the_outside():
+    """With orient (default), every cluster of a sphere maps its outward normal onto the style's up; with
+    both signs started, the residual picks an orientation at random on a flat-at-cluster-scale patch."""
+    from wast3d.procedural import content_scene, style_scene
+
+    c = content_scene("sphere", 3000).means.double()
+    labels = torch.from_numpy(kmeans(c, torch.zeros_like(c), ClusterConfig(target_cluster_size=300))[0]).long()
+    st = style_scene("pebbles", 8000).means.double()
+    reg = register(c, labels, st, RegistrationConfig(landings=1, yaws=4))
+    K = len(reg.R)
+    mu = torch.stack([c[labels == i].mean(0) for i in range(K)])
+    up = torch.einsum("kij,kj->ki", reg.R, mu / mu.norm(dim=1, keepdim=True))[:, 2]
+    assert float((up > 0).double().mean()) == 1.0

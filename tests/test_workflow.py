@@ -176,8 +176,10 @@ def test_caching_reruns_only_what_a_change_affects(tiny_run):
     assert set(j) == {"sinkhorn", "rescale", "result_preview", "summary"} | downstream and j["evaluate"] == 2
     cfg = copy.deepcopy(base)
     cfg["partitions"]["default"]["cluster"]["n_clusters"] = 2
+    # the texture reference shows the style at the registration's scale s0, so it follows the partition
     assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {
-        "cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary"} | downstream
+        "cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary",
+        "texture_reference"} | downstream
     cfg = copy.deepcopy(base)
     cfg["evaluation"]["metrics"]["patches"] = 9
     assert jobs(snake(tiny_run, "-n", config=cfg)) == {"evaluate": 4, "table1": 1, "all": 1}

@@ -82,7 +82,7 @@ class PretrainConfig:
     aniso_weight: float = 0.1
     aniso_ratio: float = 3.0
     unif_weight: float = 0.1
-    opacity_weight: float = 0.01  # binary opacity (with regularize; from refine_stop on); 0: off
+    opacity_weight: float = 0.1  # binary opacity (with regularize; from refine_stop on); 0: off
     target_scale: float = 0.0
     checkpoint_every: int = 1000
     eval_every: int = 0  # 0: only at the end

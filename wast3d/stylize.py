@@ -67,6 +67,7 @@ FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
 # and 71 % at 0.01).
 SINKHORN_DEFAULTS = {"blur": 0.3, "tol": 1e-3}
 BLUR_UNITS = ("cluster", "scene")
+MASSES = ("uniform", "area")
 
 
 @dataclass
@@ -85,6 +86,7 @@ class StylizeConfig:
     device: str = "auto"  # "auto": CUDA when available
     blur_units: str = "cluster"  # "cluster": gamma relative to each cluster's radius; "scene": see above
     batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
+    masses: str = "area"  # "area": each Gaussian's mass is its footprint (see footprint_masses); "uniform"
     smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
     smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
     sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
@@ -96,6 +98,8 @@ class StylizeConfig:
             raise ValueError(f"stylize.loss must be 'sinkhorn' or 'arap', got '{self.loss}'")
         if self.optimizer not in ("adam", "flow"):
             raise ValueError(f"stylize.optimizer must be 'adam' or 'flow', got '{self.optimizer}'")
+        if self.masses not in MASSES:
+            raise ValueError(f"stylize.masses must be one of {MASSES}, got '{self.masses}'")
         if self.smooth_k < 1 or self.smooth_passes < 0:
             raise ValueError(f"stylize: need smooth_k >= 1 and smooth_passes >= 0 (got {self.smooth_k}, {self.smooth_passes})")
         if self.batch < 0:
@@ -150,13 +154,31 @@ class ClusterResult:
 @dataclass
 class ClusterPair:
     """One term of eq. 9: content cluster x_* [N, 3] in the style frame, its style Gaussians y_* [M, 3],
-    and its gamma in normalized units (:func:`cluster_blur`)."""
+    its gamma in normalized units (:func:`cluster_blur`) and the two sides' masses x_w [N], y_w [M]
+    (any positive scale, normalized per side; None: uniform)."""
 
     x_pos: torch.Tensor
     x_rgb: torch.Tensor
     y_pos: torch.Tensor
     y_rgb: torch.Tensor
     blur: float
+    x_w: torch.Tensor | None = None
+    y_w: torch.Tensor | None = None
+
+
+def footprint_masses(scene: GaussianScene) -> torch.Tensor:
+    """[N] each Gaussian's mass for ``masses: area``: ``o s_1 s_2``, its opacity times the product of
+    its two largest scales (the integral of its footprint seen face-on, over 2 pi).
+
+    Why: the transport moves one distribution of mass onto the other. With uniform masses a region
+    holds as much mass as it has Gaussians, so where a trained scene puts many small Gaussians (a
+    pebble's rim, a leg's edge) and where it puts a few large ones (a pebble's top, the flat ground)
+    weigh differently, and the flow moves Gaussians from the first kind of region to the second to
+    even out the count: elements tear (the procedural styles, uniform discs at one spacing, never
+    showed it). With masses by area both sides are distributions of visible surface, whatever the
+    Gaussians' sizes."""
+    sc = scene.scales.detach().double().sort(dim=1, descending=True).values
+    return (scene.opacities.detach().double() * sc[:, 0] * sc[:, 1]).clamp_min(1e-30)
 
 
 def neighbour_graph(ys: list[torch.Tensor], k: int) -> torch.Tensor:
@@ -218,6 +240,7 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     x_off, y_off = torch.cat([n.new_zeros(1), n.cumsum(0)]), torch.cat([m.new_zeros(1), m.cumsum(0)])
     xf, y0c = torch.cat(xs), torch.cat(y0cs)
     yid = segment_ids(y_off).to(dev)
+    a, b = packed_masses([pr.x_w for pr in pairs], n, dev, dt), packed_masses([pr.y_w for pr in pairs], m, dev, dt)
     blur = torch.tensor([pr.blur for pr in pairs], dtype=torch.float64)
     Y = torch.cat(ys).clone().requires_grad_(True)
     dC = torch.zeros_like(y0c).requires_grad_(True)
@@ -230,7 +253,8 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     # (debiased, blurred) transport target: a displacement field smooth at the scale gamma, so that
     # the style's elements move as wholes
     opt = torch.optim.Adam(groups) if cfg.optimizer == "adam" else torch.optim.SGD(groups)
-    flow = m.to(dev, dt)[yid][:, None] if cfg.optimizer == "flow" else None  # M of each row's cluster
+    # the flow's step is the gradient over each row's mass: 1 / b_j (M of its cluster when uniform)
+    flow = (m.to(dev, dt)[yid] if b is None else 1.0 / b)[:, None] if cfg.optimizer == "flow" else None
     losses: list[list[float]] = [[] for _ in pairs]
     pot = None
     araps = [_ArapState(yn, cfg.arap_k) for yn in ys] if cfg.loss == "arap" else None
@@ -241,7 +265,7 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
         opt.zero_grad(set_to_none=True)
         yf = torch.cat([Y, w * (y0c + dC)], 1)
         if araps is None:
-            res = sinkhorn_batched(xf, yf.detach(), x_off, y_off, cfg.sinkhorn, blur=blur,
+            res = sinkhorn_batched(xf, yf.detach(), x_off, y_off, cfg.sinkhorn, a=a, b=b, blur=blur,
                                    init=pot if cfg.warm_start else None, x_fixed=True)
             pot = res.potentials
             gy = res.grad_y
@@ -278,6 +302,15 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
         out.append(ClusterResult(pos.to(pr.y_pos.dtype), dC.detach()[sl].cpu().to(pr.y_rgb.dtype), losses[k],
                                  seconds * float(work[k] / work.sum())))
     return out
+
+
+def packed_masses(ws: list[torch.Tensor | None], sizes: torch.Tensor, dev, dt) -> torch.Tensor | None:
+    """Per-problem masses [sum sizes], each problem's normalized to 1; None when every one is uniform."""
+    if all(w is None for w in ws):
+        return None
+    parts = [torch.full((int(k),), 1.0 / int(k), dtype=torch.float64) if w is None else w.double() / w.double().sum()
+             for w, k in zip(ws, sizes)]
+    return torch.cat(parts).to(dev, dt)
 
 
 def stylize_in_batches(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False) -> list[ClusterResult]:
@@ -329,6 +362,8 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()
+    c_mass = footprint_masses(content) if cfg.masses == "area" else None
+    s_mass = footprint_masses(style) if cfg.masses == "area" else None
     todo, pairs = [], []
     for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
@@ -340,7 +375,8 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         todo.append((i, sel, sub))
         pairs.append(ClusterPair(mapped[m], c_rgb[m], sub.means.float(), sub.rgb.float(),
                                  cluster_blur(cfg, mapped[m], scene_radius, float(reg.s[i].mean()),
-                                              sub.means)))
+                                              sub.means),
+                                 x_w=None if c_mass is None else c_mass[m], y_w=None if s_mass is None else s_mass[sel]))
     if not pairs:
         raise ValueError("stylize: no non-empty cluster")
     results = stylize_in_batches(pairs, cfg, progress)
