@@ -36,8 +36,9 @@ def test_registration_recovers_known_transform():
         truth.append((R, s, t))
     P, L = torch.cat(pts), torch.cat(labs)
     # the density rule puts s0 at the true scale's neighbourhood (element_scale would set it from the
-    # content's size, which four scattered copies do not have)
-    reg = register(P, L, style, RegistrationConfig(landings=1, element_scale=0))
+    # content's size, which four scattered copies do not have); copies of an open sheet have no outside,
+    # so both normal signs are started (orient=False)
+    reg = register(P, L, style, RegistrationConfig(landings=1, element_scale=0, orient=False))
     for i, (R, s, t) in enumerate(truth):
         m = L == i
         err = (reg.apply(P[m], L[m]) - s * ((P[m] - t) @ R.T)).norm(dim=1).mean() / reg.style_spacing
