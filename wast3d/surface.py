@@ -172,20 +172,25 @@ def _hidden(scene: GaussianScene, keep: torch.Tensor, views: int, resolution: in
     _drop(keep, ~vis, report, "removed_not_on_visible_surface")
 
 
-def _skipped(n: int, reason: str) -> tuple[torch.Tensor, dict]:
-    log.info("%s skipped: %s", reason.split(" disabled")[0], reason)
-    return torch.arange(n), {"input": n, "skipped": True, "reason": reason, "kept": n}
+def _begin(scene: GaussianScene, enabled: bool, what: str, role: str):
+    """(keep [N] all True, report) to start a filter, or the skipped result ``(indices, report)`` when
+    it is disabled; an empty scene is an error naming ``what`` and the scene's ``role``."""
+    n = len(scene)
+    if n == 0:
+        raise ValueError(f"{what}: the {role} scene has no Gaussians")
+    if not enabled:
+        reason = f"{what} disabled for this scene (already a clean surface)"
+        log.info("%s skipped: %s", what, reason)
+        return None, (torch.arange(n), {"input": n, "skipped": True, "reason": reason, "kept": n})
+    return (torch.ones(n, dtype=torch.bool), {"input": n}), None
 
 
 def sample_surface(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[torch.Tensor, dict]:
     """Indices [K] of the content Gaussians kept, and a report of counts removed and why."""
-    n = len(scene)
-    if n == 0:
-        raise ValueError("surface sampling: the content scene has no Gaussians")
-    if not cfg.enabled:
-        return _skipped(n, "surface sampling disabled for this scene (already a clean surface)")
-    report: dict = {"input": n}
-    keep = torch.ones(n, dtype=torch.bool)
+    start, skipped = _begin(scene, cfg.enabled, "surface sampling", "content")
+    if skipped:
+        return skipped
+    (keep, report), n = start, len(scene)
     _drop(keep, scene.opacities.detach() < cfg.min_opacity, report, "removed_low_opacity")
     _outliers(scene, keep, cfg.outlier_k, cfg.outlier_quantile, report)
     if cfg.visibility:
@@ -224,13 +229,10 @@ def core_box(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tensor,
 
 def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tensor, dict]:
     """Indices [K] of the style Gaussians kept, and a report of counts removed and why (module docstring)."""
-    n = len(scene)
-    if n == 0:
-        raise ValueError("style cleaning: the style scene has no Gaussians")
-    if not cfg.enabled:
-        return _skipped(n, "style cleaning disabled for this scene (already a clean surface)")
-    report: dict = {"input": n}
-    keep = torch.ones(n, dtype=torch.bool)
+    start, skipped = _begin(scene, cfg.enabled, "style cleaning", "style")
+    if skipped:
+        return skipped
+    (keep, report), n = start, len(scene)
     lo, hi = core_box(scene, cfg)
     m = scene.means.detach().double()
     _drop(keep, ((m < lo) | (m > hi)).any(1), report, "removed_outside_patch")
