@@ -323,6 +323,9 @@ def test_base_scale_rules():
     assert abs(s1 / s0 - 0.5) < 1e-9  # elements twice as large on the content
     assert base_scale(c, st, RegistrationConfig(scale=3.0))[0] == 3.0
     assert base_scale(c, st, RegistrationConfig(element_scale=0))[1]["rule"].startswith("density")
+    flat = torch.cat([torch.rand(2000, 2, dtype=D64) * 2 - 1, torch.zeros(2000, 1, dtype=D64)], 1)
+    s2, how = base_scale(c, flat, RegistrationConfig())  # no relief: the density rule, said so
+    assert how["rule"].startswith("density") and "flat" in how["note"] and s2 > 0
 
 
 def test_outward_normals_and_style_up():

@@ -221,13 +221,20 @@ def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConf
 
     if cfg.scale > 0:
         return cfg.scale, {"rule": "scale (explicit)"}
+    why = None
     if cfg.element_scale > 0:
-        L = relief_length(style)
-        Dc = 2 * robust_bounds(content)[1]
-        return L / (cfg.element_scale * Dc), {"rule": "element_scale", "relief_length": L, "content_diameter": Dc,
-                                              "element_scale": cfg.element_scale}
+        try:
+            L = relief_length(style)
+        except ValueError as e:  # a flat style (a printed label) has no relief to size its elements by
+            why = f"element_scale not applicable ({e}); density rule used"
+            log.warning("registration: %s", why)
+        else:
+            Dc = 2 * robust_bounds(content)[1]
+            return L / (cfg.element_scale * Dc), {"rule": "element_scale", "relief_length": L, "content_diameter": Dc,
+                                                  "element_scale": cfg.element_scale}
     h_s, h_c = mean_spacing(style, seed=cfg.seed), mean_spacing(content, seed=cfg.seed)
-    return h_s / h_c, {"rule": "density (style spacing / content spacing)", "style_spacing": h_s, "content_spacing": h_c}
+    return h_s / h_c, {"rule": "density (style spacing / content spacing)", "style_spacing": h_s, "content_spacing": h_c,
+                       **({"note": why} if why else {})}
 
 
 def _segment_mean(v: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
