@@ -289,6 +289,11 @@ def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
     assert float(torch.isin(parts["buried"], idx_nv).double().mean()) > 0.9  # only the visibility test finds them
     assert rep["removed_outside_patch"] >= len(parts["far"]) and rep["kept"] == len(idx)
     assert "style cleaning: kept" in caplog.text
+    big = scene.subset(parts["patch"][:50])
+    big = GaussianScene(**{**big.tensors(), "log_scales": big.log_scales + 3.0}, element=big.element)
+    with_big = GaussianScene.concat([scene, big])
+    _, rep_big = clean_style(with_big, StyleCleanConfig(visibility=False, max_scale=3.0))
+    assert rep_big["removed_oversized"] == 50  # 20x the median size: oversized
     idx, rep = clean_style(scene, StyleCleanConfig(enabled=False))
     assert len(idx) == len(scene) and rep["skipped"]
     with pytest.raises(ValueError, match="no Gaussians"):

@@ -66,6 +66,7 @@ class StyleCleanConfig:
     core_quantile: float = 0.01  # core box: these quantiles of the opaque Gaussians' positions, per axis
     core_opacity: float = 0.5  # "opaque" for the core box
     core_margin: float = 0.05  # the box widened by this fraction of its size on each side
+    max_scale: float = 0.0  # oversized: largest axis above this many times the median one (0: off)
     outlier_k: int = 30
     outlier_quantile: float = 0.99
     visibility: bool = True
@@ -238,6 +239,9 @@ def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tens
     _drop(keep, ((m < lo) | (m > hi)).any(1), report, "removed_outside_patch")
     report["patch_box"] = [lo.tolist(), hi.tolist()]
     _drop(keep, scene.opacities.detach() < cfg.min_opacity, report, "removed_low_opacity")
+    if cfg.max_scale > 0 and bool(keep.any()):
+        big = scene.scales.detach().max(1).values
+        _drop(keep, big > cfg.max_scale * big[keep].median(), report, "removed_oversized")
     _outliers(scene, keep, cfg.outlier_k, cfg.outlier_quantile, report)
     if cfg.visibility:
         idx = keep.nonzero().squeeze(1)
