@@ -31,8 +31,9 @@ every Gaussian of a result knows which element of the style it came from.
 
 ``element_diameter``
     The median over elements of twice the 90th-percentile distance of an element's Gaussians to its
-    centroid (robust to a stray Gaussian); the length that :mod:`wast3d.registration` uses to put
-    elements of a chosen size on the content.
+    centroid (robust to a stray Gaussian). Registration does not use it (its scale rule needs no
+    labels: :func:`wast3d.registration.relief_length`); it is the labelled size that rule is checked
+    against.
 """
 
 from __future__ import annotations

@@ -312,6 +312,13 @@ def luminance(rgb: torch.Tensor) -> torch.Tensor:
     return rgb @ rgb.new_tensor([0.299, 0.587, 0.114])
 
 
+def footprint(scales: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor:
+    """``o s_1 s_2`` per Gaussian: opacity times the product of its two largest scales, the integral of
+    its alpha seen face-on over 2 pi. scales: [N, 3], opacities: [N] -> [N] (float64)."""
+    sc = scales.detach().double().sort(dim=-1, descending=True).values
+    return opacities.detach().double() * sc[:, 0] * sc[:, 1]
+
+
 def anisotropy(scales: torch.Tensor) -> torch.Tensor:
     """max(s) / min(s) per Gaussian; scales: [N, 3] -> [N]."""
     return scales.max(dim=-1).values / scales.min(dim=-1).values.clamp_min(1e-30)

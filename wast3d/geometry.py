@@ -103,4 +103,3 @@ def robust_bounds(points: torch.Tensor, q: float = 0.005) -> tuple[torch.Tensor,
     lo = torch.quantile(m, q, dim=0) if len(m) > 1 else m[0]
     hi = torch.quantile(m, 1 - q, dim=0) if len(m) > 1 else m[0]
     return 0.5 * (lo + hi), max(float(0.5 * (hi - lo).norm()), 1e-3)
-

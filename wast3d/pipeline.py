@@ -237,8 +237,8 @@ def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, par
     cfg = make_config(RenderConfig, params, "render")
     s0 = None if registration is None else Registration.from_npz(load_npz(registration)).s0
     info = render_texture_reference(read_ply(style_ply), read_ply(content_ply), out_dir, cfg, progress, s0)
-    log.info("texture reference: %s at zoom %.3f (cameras fitted to it, spacing matched to %s) -> %s", style_ply,
-             info["zoom"], content_ply, out_dir)
+    log.info("texture reference: %s at zoom %.3f (cameras fitted to it, its elements at their size on %s) -> %s",
+             style_ply, info["zoom"], content_ply, out_dir)
 
 
 def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, params: dict) -> None:
@@ -257,19 +257,19 @@ def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, param
                                                     "gaussians": len(out), "config": dataclasses.asdict(cfg)})
 
 
-def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, texture_reference: Path,
-                      stylize_npz: Path | None, cfg) -> dict:
+def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, style_frames: torch.Tensor,
+                      texture_reference: Path, stylize_npz: Path | None, cfg) -> dict:
     """The element metrics of one result (:mod:`wast3d.elements`): ``element_share`` of the result's
-    turntable against the style's texture reference, and ``element_intact`` against the collage
-    (the positions before optimization in ``stylize_npz``)."""
+    turntable (``frames``) against the style's texture reference (``style_frames``, read from
+    ``texture_reference``), and ``element_intact`` against the collage (the positions before
+    optimization in ``stylize_npz``)."""
     from .elements import copy_ids, element_intact, element_share
-    from .render import read_element_frames, read_frames
+    from .render import read_element_frames
 
     out = {"element_share": None, "element_share_style": None, "element_share_ratio": None, "element_intact": None}
     style_el = read_element_frames(texture_reference)
     if style.element is None or style_el is None:
         return {**out, "element_status": "not computed: the style has no element labels"}
-    style_frames = read_frames(texture_reference)
     out["element_share_style"] = element_share(style_el, style_frames[..., 3], cfg.min_alpha)
     res_el = read_element_frames(result_render)
     # an unlabelled result (the content, a colour transfer) has no Gaussian of the style: no element pixel
@@ -300,11 +300,10 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     ``texture_reference``: the style at the result's pixel scale (:func:`run_texture_reference`, texture
     SWD); ``content_render``: the unstylized content's render with the same cameras (coverage)."""
     from .clip_eval import ClipConfig, ClipUnavailable, CropConfig, clip_similarity, load_clip, random_crops
+    from .elements import ElementConfig
     from .image_metrics import TextureConfig, coverage, texture_swd
     from .metrics import MetricsConfig, weights_free_metrics
     from .render import read_frames
-
-    from .elements import ElementConfig
 
     blocks = ("clip", "crops", "elements", "metrics", "texture")
     unknown = sorted(set(params) - set(blocks))
@@ -329,7 +328,8 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
                          f"{content_render} {list(reference.shape)}; render both with the same settings")
     out["coverage"] = coverage(frames[..., 3], reference[..., 3])
     texture_frames = read_frames(texture_reference)  # a missing or corrupt reference is an error, not a result
-    out.update(evaluate_elements(result, style, frames, result_render, texture_reference, stylize_npz, ecfg))
+    out.update(evaluate_elements(result, style, frames, result_render, texture_frames, texture_reference, stylize_npz,
+                                 ecfg))
     try:
         out["texture_swd"] = texture_swd(frames, texture_frames, tcfg)
         out["texture_status"] = "computed"

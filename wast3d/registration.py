@@ -115,14 +115,22 @@ def mean_spacing(points: torch.Tensor, max_points: int = 200_000, seed: int = 0)
     return max(float(d.mean()), 1e-12)
 
 
-def style_up(style: torch.Tensor) -> torch.Tensor:
-    """[3] the style patch's up: its least-variance axis, signed so that the heights along it have a
-    positive skew (elements stand up from the ground, their tops are the rare high points)."""
-    x = style.double()
+def patch_frame(style: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(centre [3], axes [3, 3]) of a style patch [M, 3]: rows by decreasing variance (the patch plane,
+    then its normal), the normal signed so that the heights along it have a positive skew (elements
+    stand up from the ground, their tops are the rare high points): the patch's *up*."""
+    x = style.detach().double().cpu().numpy()
     c = x.mean(0)
-    n = torch.linalg.eigh((x - c).T @ (x - c))[1][:, 0]
-    h = (x - c) @ n
-    return n if float(((h - h.mean()) ** 3).mean()) >= 0 else -n
+    axes = np.linalg.svd(x - c, full_matrices=False)[2]
+    h = (x - c) @ axes[2]
+    if ((h - h.mean()) ** 3).mean() < 0:
+        axes[2] = -axes[2]
+    return c, axes
+
+
+def style_up(style: torch.Tensor) -> torch.Tensor:
+    """[3] the style patch's up (:func:`patch_frame`)."""
+    return torch.from_numpy(patch_frame(style)[1][2].copy()).to(torch.float64)
 
 
 def outward_normals(content: torch.Tensor, labels: torch.Tensor, normals: torch.Tensor, grid: int = 64,
@@ -187,13 +195,11 @@ def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02) -> floa
     at about w / 2: L = 2 r_0 is about an element's width (procedural pebbles 0.35 and stones 0.60 in
     units where their labelled diameters are 0.21 and 0.45; a weave's 0.087 at a period of 0.17). The
     demo's trained pebbles: 1.65 raw (floaters), 0.37 cleaned (surface.clean_style): clean first."""
-    x = style.detach().double().cpu().numpy()
-    if len(x) < 16:
-        raise ValueError(f"relief length: {len(x)} style points (need at least 16)")
-    c = x.mean(0)
-    axes = np.linalg.svd(x - c, full_matrices=False)[2]
-    uvw = (x - c) @ axes.T
-    w = uvw[:, 2] if ((uvw[:, 2] - uvw[:, 2].mean()) ** 3).mean() >= 0 else -uvw[:, 2]
+    if len(style) < 16:
+        raise ValueError(f"relief length: {len(style)} style points (need at least 16)")
+    c, axes = patch_frame(style)
+    uvw = (style.detach().double().cpu().numpy() - c) @ axes.T
+    w = uvw[:, 2]
     lo, hi = np.quantile(uvw[:, :2], q, axis=0), np.quantile(uvw[:, :2], 1 - q, axis=0)
     cell = max(float((hi - lo).max()) / grid, 1e-12)
     ij = np.floor((uvw[:, :2] - lo) / cell).astype(np.int64)

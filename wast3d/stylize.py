@@ -48,7 +48,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from .device import resolve_device
-from .gaussians import SH_C0, GaussianScene, luminance
+from .gaussians import SH_C0, GaussianScene, footprint, luminance
 from .geometry import kabsch, knn
 from .sinkhorn import SinkhornConfig, sinkhorn
 
@@ -177,8 +177,7 @@ def footprint_masses(scene: GaussianScene) -> torch.Tensor:
     even out the count: elements tear (the procedural styles, uniform discs at one spacing, never
     showed it). With masses by area both sides are distributions of visible surface, whatever the
     Gaussians' sizes."""
-    sc = scene.scales.detach().double().sort(dim=1, descending=True).values
-    return (scene.opacities.detach().double() * sc[:, 0] * sc[:, 1]).clamp_min(1e-30)
+    return footprint(scene.scales, scene.opacities).clamp_min(1e-30)
 
 
 def neighbour_graph(ys: list[torch.Tensor], k: int) -> torch.Tensor:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .gaussians import GaussianScene
+from .gaussians import GaussianScene, footprint
 from .geometry import knn
 
 log = logging.getLogger(__name__)
@@ -129,8 +129,7 @@ def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_
 
     best = torch.zeros(len(scene), dtype=torch.float64)
     s = scene.detach()
-    sc = s.scales.double().sort(dim=1, descending=True).values
-    alone = s.opacities.double() * 2 * torch.pi * sc[:, 0] * sc[:, 1]
+    alone = 2 * torch.pi * footprint(s.scales, s.opacities)
     for cam in fit_orbit(s, views, resolution, elevations_deg=elevations_deg):
         ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
         out = rasterize(s, cam, colors=ones)
