@@ -36,7 +36,8 @@ def main(argv=None) -> None:
 
     ap = argparse.ArgumentParser()
     ap.add_argument("pair", help="CONTENT__STYLE, as under results/stylize")
-    ap.add_argument("--set", required=True, help="KEY=V1,V2,... (a stylize key, e.g. smooth_passes=0,4)")
+    ap.add_argument("--set", required=True,
+                    help="KEY=V1,V2,... (a stylize key, e.g. smooth_passes=0,4, or rescale.KEY, e.g. rescale.bound=1,2)")
     ap.add_argument("--experiment", default="default")
     ap.add_argument("--results", type=Path, default=ROOT / "results")
     ap.add_argument("--config", type=Path, default=ROOT / "config" / "config.yaml")
@@ -64,12 +65,16 @@ def main(argv=None) -> None:
         name = f"{key}={val}"
         d = out / name.replace("=", "_")
         d.mkdir(parents=True, exist_ok=True)
-        params = {**exp.get("stylize", {}), key: val}
+        stage, _, k = key.rpartition(".")
+        params = {**exp.get("stylize", {}), **({k: val} if stage in ("", "stylize") else {})}
+        rescale = {**exp.get("rescale", {}), **({k: val} if stage == "rescale" else {})}
+        if stage not in ("", "stylize", "rescale"):
+            raise SystemExit(f"--set {key}: only stylize keys or rescale.KEY can be swept here")
         t = time.perf_counter()
         pipeline.run_stylize(content_ply, clusters, style_ply, reg, sel, d / "stylized.ply", d / "stylize.npz",
                              d / "losses.csv", params, progress=False)
         secs = time.perf_counter() - t
-        pipeline.run_rescale(d / "stylized.ply", d / "stylize.npz", d / "final.ply", exp.get("rescale", {}))
+        pipeline.run_rescale(d / "stylized.ply", d / "stylize.npz", d / "final.ply", rescale)
         pipeline.run_render(d / "final.ply", content_ply, d / "render", render_cfg, progress=False)
         pipeline.run_evaluate(d / "final.ply", content_ply, style_ply, d / "render", R / "render" / "scenes" / style,
                               R / "render" / "texture_reference" / a.pair, R / "render" / "pairs" / a.pair / "input",

@@ -16,6 +16,7 @@ from wast3d.gaussians import GaussianScene, quat_multiply
 from wast3d.metrics import (MetricsConfig, chamfer, content_chamfer, principal_frames, style_metrics,
                             weights_free_metrics)
 from wast3d.procedural import make_scene
+from wast3d.geometry import knn
 
 
 def frames_with_blob(V=3, H=40, W=50, seed=0):
@@ -162,6 +163,55 @@ def test_metrics_grow_with_perturbation(pebbles, what, keys):
         assert v[0] < 1e-6 and v[0] < v[1] < v[2], (k, v)
 
 
+def _bumpy_sphere(n: int, amplitude: float, freq: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    u = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    u = u / u.norm(dim=1, keepdim=True)
+    r = 1 + amplitude * torch.sin(freq * u[:, 0]) * torch.sin(freq * u[:, 1]) * torch.sin(freq * u[:, 2])
+    return u * r[:, None]
+
+
+def test_gaussian_smooth_removes_relief_below_sigma():
+    from wast3d.geometry import gaussian_smooth
+
+    g = torch.Generator().manual_seed(0)
+    xy = torch.rand(6000, 2, generator=g, dtype=torch.float64) * 4
+    z = 0.05 * torch.sin(2 * math.pi * xy[:, 0] / 0.2)  # ripples of wavelength 0.2
+    pts = torch.cat([xy, z[:, None]], 1)
+    inner = ((xy > 1) & (xy < 3)).all(1)
+    flat = gaussian_smooth(pts, pts, 0.1)
+    # relief at sigma's scale averaged away (sampling noise of ~50 points per kernel is what remains)
+    assert flat[inner, 2].abs().mean() < 0.25 * z[inner].abs().mean()
+    assert (flat[inner, :2] - xy[inner]).norm(dim=1).mean() < 0.03  # points stay about where they were
+    plane = torch.cat([xy, torch.zeros(len(xy), 1, dtype=torch.float64)], 1)
+    assert gaussian_smooth(plane, plane, 0.1)[:, 2].abs().max() == 0
+    far = torch.tensor([[100.0, 0.0, 0.0]], dtype=torch.float64)  # no support within 2 sigma: kept
+    assert torch.equal(gaussian_smooth(far, plane, 0.1), far)
+    with pytest.raises(ValueError, match="sigma must be > 0"):
+        gaussian_smooth(plane, plane, 0.0)
+
+
+def test_coarse_chamfer_ignores_relief_and_sees_shape():
+    from wast3d.metrics import coarse_chamfer, surface_distance
+
+    content = _bumpy_sphere(6000, 0.0, 1)
+    L = 0.5  # the element length: bumps of about this size are relief, not shape
+    relief = _bumpy_sphere(9000, 0.08, 12, seed=1)  # bumps about 0.5 wide, 0.08 high, at another density
+    larger = 1.06 * _bumpy_sphere(6000, 0.0, 1, seed=2)
+    blob = _bumpy_sphere(6000, 0.0, 1, seed=3) * torch.tensor([1.6, 1.0, 0.6], dtype=torch.float64)  # an ellipsoid
+    same = coarse_chamfer(_bumpy_sphere(6000, 0.0, 1, seed=4), content, L)
+    bumps = coarse_chamfer(relief, content, L)
+    plain_bumps = content_chamfer(relief, content)
+    assert same < 0.3 and bumps < 1.0 < plain_bumps
+    assert coarse_chamfer(larger, content, L) > 2 * bumps
+    assert coarse_chamfer(blob, content, L) > 2 * coarse_chamfer(larger, content, L)
+    # point-to-surface: a sparser sample of the same surface is as close as a dense one
+    sparse = _bumpy_sphere(1500, 0.0, 1, seed=5)
+    assert surface_distance(sparse, content).mean() < 0.5 * knn(sparse, content, 1)[0].mean() + 1e-3
+    with pytest.raises(ValueError, match="smoothing length"):
+        coarse_chamfer(content, content, 0.0)
+
+
 def test_chamfer_and_patch_normalization_invariances():
     g = torch.Generator().manual_seed(0)
     x = torch.randn(200, 3, generator=g, dtype=torch.float64)
@@ -227,6 +277,13 @@ def test_closeup_is_a_crop_of_the_zoomed_render():
     x0, y0 = round(cam.cx * 2 - cu.cx), round(cam.cy * 2 - cu.cy)
     assert (x0, y0) == (31, 9) and crop.shape == (40, 40, 3)
     assert torch.allclose(crop, full[y0:y0 + 40, x0:x0 + 40], atol=1e-5)
+    # closeup_size: the same fragment at twice the pixels (a crop of the render at 4x)
+    big = closeup_camera(cam, (25, 14), 2.0, size=80)
+    full4 = rasterize(scene, cam.scaled(4.0), background=(1.0, 1.0, 1.0))["rgb"]
+    crop2 = rasterize(scene, big, background=(1.0, 1.0, 1.0))["rgb"]
+    x1, y1 = round(cam.cx * 4 - big.cx), round(cam.cy * 4 - big.cy)
+    assert (x1, y1) == (2 * x0, 2 * y0) and crop2.shape == (80, 80, 3)
+    assert torch.allclose(crop2, full4[y1:y1 + 80, x1:x1 + 80], atol=1e-5)
 
 
 def test_fragment_pixel_is_on_the_foreground():
@@ -318,6 +375,8 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
                  tmp_path / "rx", tmp_path / "rc", tmp_path / "none.json", base)
     ev = json.loads((tmp_path / "none.json").read_text())
     assert ev["clip_similarity"] is None and ev["clip_status"].startswith("not computed: no clip.checkpoint")
+    # the texture reference had no registration, so no element length: the coarse Chamfer says why not
+    assert ev["coarse_chamfer"] is None and "no element_length" in ev["coarse_status"]
     assert ev["content_chamfer"] == 0 and ev["style_patch_chamfer"] > 0
     assert ev["coverage"] == 1.0 and ev["texture_swd"] > 0 and ev["relief_w1"] > 0
     clip = {"model": "wast3d-tiny-clip", "checkpoint": str(tiny_clip[1]), "model_config": str(tiny_clip[0])}
@@ -325,6 +384,10 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
                  tmp_path / "rx", tmp_path / "rc", tmp_path / "clip.json", {**base, "clip": clip})
     ev = json.loads((tmp_path / "clip.json").read_text())
     assert ev["clip_status"] == "computed" and -100 <= ev["clip_similarity"] <= 100
+    run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
+                 tmp_path / "rx", tmp_path / "rc", tmp_path / "coarse.json", {**base, "metrics": {**small, "coarse_scale": 0.1}})
+    ev = json.loads((tmp_path / "coarse.json").read_text())
+    assert ev["coarse_chamfer"] < 0.2 and "metrics.coarse_scale" in ev["coarse_status"] and ev["coarse_length"] > 0
     # a collapsed result (what entropic OT without debiasing does at a large blur): no crop has enough
     # foreground; evaluate still writes its metrics, coverage says how little is left, crops say why not
     c0 = content.means.mean(0)

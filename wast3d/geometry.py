@@ -62,6 +62,34 @@ def knn_mean_dist(points: torch.Tensor, k: int) -> torch.Tensor:
     return d.mean(dim=1)
 
 
+def gaussian_smooth(points: torch.Tensor, support: torch.Tensor, sigma: float, chunk: int = 2048) -> torch.Tensor:
+    """Each point replaced by the Gaussian-weighted mean of the support points around it:
+
+        p~_i = sum_j w_ij y_j / sum_j w_ij,   w_ij = exp(-|p_i - y_j|^2 / (2 sigma^2)),  |p_i - y_j| <= 2 sigma
+
+    points: [N, 3], support: [M, 3] -> [N, 3] (float64). A point with no support within 2 sigma is kept.
+    Relief narrower than about sigma is averaged away; a part thinner than sigma collapses to its axis
+    (on both sides of a comparison alike). KD-tree pairs in chunks of ``chunk`` points (bounded memory)."""
+    if sigma <= 0:
+        raise ValueError(f"gaussian_smooth: sigma must be > 0, got {sigma}")
+    if len(support) == 0:
+        raise ValueError("gaussian_smooth: the support set is empty")
+    p = points.detach().double().cpu().numpy()
+    y = support.detach().double().cpu().numpy()
+    tree = cKDTree(y)
+    out = p.copy()
+    for s in range(0, len(p), chunk):
+        q = cKDTree(p[s:s + chunk])
+        pairs = q.sparse_distance_matrix(tree, 2 * sigma, output_type="ndarray")
+        w = np.exp(-pairs["v"] ** 2 / (2 * sigma**2))
+        i = pairs["i"]
+        den = np.bincount(i, w, minlength=len(q.data))
+        num = np.stack([np.bincount(i, w * y[pairs["j"], a], minlength=len(q.data)) for a in range(3)], 1)
+        has = den > 0
+        out[s:s + chunk][has] = num[has] / den[has, None]
+    return torch.from_numpy(out)
+
+
 def local_normals(points: torch.Tensor, at: torch.Tensor, k: int) -> torch.Tensor:
     """Least-variance direction (unit, sign arbitrary) of the ``k`` nearest ``points`` [M, 3] of each
     query in ``at`` [B, 3]: the local surface normal by PCA. -> [B, 3]."""

@@ -7,6 +7,13 @@ Content fidelity
     surface samples C, in units of the content's mean nearest-neighbour spacing h_C:
     ``(mean_x min_c |x-c| + mean_c min_x |x-c|) / (2 h_C)``.  1.0 = one content point spacing.
 
+    ``coarse_chamfer``: the same, after result and content are each smoothed at the style's element
+    length L on the content (:func:`~wast3d.geometry.gaussian_smooth`, sigma = L / 2, over at most
+    ``coarse_support`` points of each cloud): the content's shape without the relief that the style is
+    meant to add (a style with relief cannot meet a plain Chamfer of a few content spacings). Same unit
+    (the unsmoothed content's spacing). L: ``coarse_scale`` x the content's diameter if set, else the
+    style's relief length over the registration's base scale (the texture reference records it).
+
 Style fidelity (result vs style scene; neither needs the two to share a coordinate frame)
     ``style_patch_chamfer``: ``patches`` local patches of the result (every ``patch_stride``-th of
     the ``patch_size * patch_stride`` nearest means of random centres) and ``candidates`` patches of the style, each normalized to be invariant
@@ -64,6 +71,8 @@ class MetricsConfig:
     blur: float = 0.05
     relief_scales: tuple = (8, 16, 32)
     relief_centres: int = 8192
+    coarse_scale: float = 0.0  # coarse Chamfer's L as a fraction of the content's diameter; 0: the style's element length
+    coarse_support: int = 20000
     seed: int = 0
 
     def __post_init__(self):
@@ -73,6 +82,8 @@ class MetricsConfig:
         if min(self.patches, self.candidates, self.rotations, self.colour_points) < 1 or self.patch_size < 4 or self.patch_stride < 1 \
                 or self.normal_k < 3:
             raise ValueError("metrics: need patches, candidates, rotations, colour_points >= 1, patch_size >= 4, normal_k >= 3")
+        if self.coarse_scale < 0 or self.coarse_support < 16:
+            raise ValueError("metrics: need coarse_scale >= 0 and coarse_support >= 16")
 
 
 def chamfer(x: torch.Tensor, y: torch.Tensor) -> float:
@@ -86,6 +97,40 @@ def content_chamfer(result: torch.Tensor, content: torch.Tensor) -> float:
     """Chamfer(result, content) in units of the content's mean nearest-neighbour spacing."""
     h = float(knn_mean_dist(content.double(), 1).mean()) if len(content) > 1 else 1.0
     return chamfer(result, content) / max(h, 1e-12)
+
+
+def surface_distance(x: torch.Tensor, y: torch.Tensor, k: int = 8) -> torch.Tensor:
+    """Distance of each point of x [N, 3] to the surface sampled by y [M, 3] -> [N]: to the plane of its
+    k nearest y (centroid c, normal n the smallest principal axis), |(x - c) . n|, where x lies over
+    that neighbourhood (tangential offset within its largest radius); else to the nearest y. Unlike
+    the nearest-point distance it does not grow with y's sampling spacing."""
+    d, i = knn(x.double(), y.double(), k)
+    nb = y.double()[i]  # [N, k, 3]
+    c = nb.mean(1)
+    q = nb - c[:, None]
+    n = torch.linalg.eigh(q.transpose(1, 2) @ q)[1][..., 0]  # smallest axis
+    v = x.double() - c
+    along = (v * n).sum(-1)
+    tangential = (v - along[:, None] * n).norm(dim=-1)
+    over = tangential <= q.norm(dim=-1).max(1).values
+    return torch.where(over, along.abs(), d[:, 0])
+
+
+def coarse_chamfer(result: torch.Tensor, content: torch.Tensor, length: float, support: int = 20000,
+                   seed: int = 0) -> float:
+    """Symmetric surface distance (:func:`surface_distance`, mean both ways, /2) of result [N, 3] and
+    content [M, 3], each smoothed at ``length`` (sigma = length / 2, over at most ``support`` of its own
+    points), in units of the unsmoothed content's mean spacing."""
+    from .geometry import gaussian_smooth
+
+    if length <= 0:
+        raise ValueError(f"coarse Chamfer: the smoothing length must be > 0, got {length}")
+    g = torch.Generator().manual_seed(seed)
+    rs = gaussian_smooth(result, result[_subsample(len(result), support, g)], length / 2)
+    cs = gaussian_smooth(content, content[_subsample(len(content), support, g)], length / 2)
+    h = float(knn_mean_dist(content.double(), 1).mean()) if len(content) > 1 else 1.0
+    d = 0.5 * (surface_distance(rs, cs).mean() + surface_distance(cs, rs).mean())
+    return float(d) / max(h, 1e-12)
 
 
 def principal_frames(p: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ import pandas as pd
 import torch
 
 from .device import resolve_device
-from .io_utils import atomic_path, load_npz, save_npz, write_json
+from .io_utils import atomic_path, load_npz, read_json, save_npz, write_json
 from .ply import read_ply, write_ply
 
 log = logging.getLogger(__name__)
@@ -231,12 +231,20 @@ def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, par
     """The style's frames at the pixel scale its elements have on renders fitted to the content
     (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
     ``params``: the render block."""
-    from .registration import Registration
+    from .registration import Registration, relief_length
     from .render import RenderConfig, render_texture_reference
 
     cfg = make_config(RenderConfig, params, "render")
+    style = read_ply(style_ply)
     s0 = None if registration is None else Registration.from_npz(load_npz(registration)).s0
-    info = render_texture_reference(read_ply(style_ply), read_ply(content_ply), out_dir, cfg, progress, s0)
+    length = None
+    if s0 is not None:
+        try:  # one relief length of the style, in content units: the coarse Chamfer's smoothing length
+            length = relief_length(style.means) / s0
+        except ValueError as e:
+            log.warning("texture reference: %s: no element length (%s); the coarse Chamfer will not be computed",
+                        style_ply, e)
+    info = render_texture_reference(style, read_ply(content_ply), out_dir, cfg, progress, s0, length)
     log.info("texture reference: %s at zoom %.3f (cameras fitted to it, its elements at their size on %s) -> %s",
              style_ply, info["zoom"], content_ply, out_dir)
 
@@ -255,6 +263,25 @@ def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, param
     write_ply(out_ply, out)
     write_json(Path(out_ply).with_suffix(".json"), {"method": "colour_ot", "seconds": secs, "device": str(out.means.device),
                                                     "gaussians": len(out), "config": dataclasses.asdict(cfg)})
+
+
+def coarse_shape(result, content, texture_reference: Path, cfg) -> dict:
+    """``coarse_chamfer`` of :mod:`wast3d.metrics` and its smoothing length: ``metrics.coarse_scale`` x
+    the content's diameter if set, else the style's element length that the texture reference recorded."""
+    from .geometry import robust_bounds
+    from .metrics import coarse_chamfer
+
+    if cfg.coarse_scale > 0:
+        length, source = cfg.coarse_scale * 2 * robust_bounds(content.means)[1], "metrics.coarse_scale"
+    else:
+        info = read_json(Path(texture_reference) / "render.json")
+        length, source = info.get("element_length"), f"{texture_reference}/render.json element_length"
+        if length is None:
+            why = f"not computed: {texture_reference}/render.json has no element_length (a flat style, or no registration)"
+            log.warning("evaluate: coarse Chamfer %s", why)
+            return {"coarse_chamfer": None, "coarse_length": None, "coarse_status": why}
+    value = coarse_chamfer(result.means, content.means, float(length), cfg.coarse_support, cfg.seed)
+    return {"coarse_chamfer": value, "coarse_length": float(length), "coarse_status": f"computed, length from {source}"}
 
 
 def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, style_frames: torch.Tensor,
@@ -320,6 +347,7 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         if len(scene) < 2:
             raise ValueError(f"{path}: {len(scene)} Gaussian(s); the metrics need at least 2")
     out = weights_free_metrics(result, content.means, style, mcfg)
+    out.update(coarse_shape(result, content, texture_reference, mcfg))
     out.update({"clip_similarity": None, "clip_status": "", "clip_model": kcfg.model})
     frames = read_frames(result_render)
     reference = read_frames(content_render)

@@ -46,13 +46,16 @@ def to_uint8(img: torch.Tensor) -> np.ndarray:
 
 
 def grid(images: list[np.ndarray], cols: int) -> np.ndarray:
-    """Tile equally sized [H, W, C] images into a grid, row-major."""
+    """Tile [H, W, C] images into a grid, row-major; cells as large as the largest image, smaller
+    images centred on white (a 512 px close-up beside 256 px key views)."""
     rows = math.ceil(len(images) / cols)
-    h, w, c = images[0].shape
+    h, w = max(im.shape[0] for im in images), max(im.shape[1] for im in images)
+    c = images[0].shape[2]
     out = np.full((rows * h, cols * w, c), 255, np.uint8)
     for i, im in enumerate(images):
         r, k = divmod(i, cols)
-        out[r * h:(r + 1) * h, k * w:(k + 1) * w] = im
+        y, x = r * h + (h - im.shape[0]) // 2, k * w + (w - im.shape[1]) // 2
+        out[y:y + im.shape[0], x:x + im.shape[1]] = im
     return out
 
 
@@ -91,8 +94,8 @@ class RenderConfig:
 
     frames: turntable frames (one orbit at ``elevation`` degrees); size: frame width = height (px);
     key_views: frames (evenly spaced) that also get depth and normal maps; closeup_zoom: magnification
-    of the close-up (a ``size`` x ``size`` window of the first key view rendered ``zoom`` times larger,
-    centred on the fragment); normals: "axis" (each Gaussian's shortest axis, alpha-blended) or "depth"
+    of the close-up (the fragment a ``size / zoom`` pixel window of the first key view shows, centred on
+    the fragment pixel); closeup_size: the close-up's width = height in px (0: ``size``); normals: "axis" (each Gaussian's shortest axis, alpha-blended) or "depth"
     (finite differences of the expected-depth map); fps: GIF frame rate.
     """
 
@@ -102,6 +105,7 @@ class RenderConfig:
     fov: float = 40.0
     key_views: int = 4
     closeup_zoom: float = 3.0
+    closeup_size: int = 0
     normals: str = "axis"
     fps: float = 8.0
     background: tuple = (1.0, 1.0, 1.0)
@@ -111,6 +115,8 @@ class RenderConfig:
             raise ValueError(f"render.normals must be 'axis' or 'depth', got '{self.normals}'")
         if self.frames < 1 or self.size < 8 or not 1 <= self.key_views <= self.frames or self.closeup_zoom < 1:
             raise ValueError("render: need frames >= 1, size >= 8, 1 <= key_views <= frames, closeup_zoom >= 1")
+        if self.closeup_size != 0 and self.closeup_size < 8:
+            raise ValueError(f"render.closeup_size must be 0 (= size) or >= 8, got {self.closeup_size}")
         self.background = tuple(self.background)
 
 
@@ -142,13 +148,17 @@ def fragment_pixel(alpha: torch.Tensor) -> tuple[int, int]:
     return i % W, i // W
 
 
-def closeup_camera(cam: Camera, pixel: tuple[int, int], zoom: float) -> Camera:
-    """A ``cam.width`` x ``cam.height`` window of ``cam`` at ``zoom`` times the resolution, centred on
-    ``pixel`` (x, y) of the original image (clamped to stay inside the zoomed image)."""
-    big = cam.scaled(zoom)
-    x0 = min(max(0, round((pixel[0] + 0.5) * zoom - cam.width / 2)), big.width - cam.width)
-    y0 = min(max(0, round((pixel[1] + 0.5) * zoom - cam.height / 2)), big.height - cam.height)
-    return big.crop(x0, y0, cam.width, cam.height)
+def closeup_camera(cam: Camera, pixel: tuple[int, int], zoom: float, size: int = 0) -> Camera:
+    """The part of ``cam``'s image that a ``cam.width / zoom`` x ``cam.height / zoom`` window centred on
+    ``pixel`` (x, y) shows (clamped to stay inside the image), rendered ``size`` px wide (0: ``cam.width``,
+    i.e. ``zoom`` times the resolution)."""
+    f = size / cam.width if size > 0 else 1.0
+    z = zoom * f
+    w, h = round(cam.width * f), round(cam.height * f)
+    big = cam.scaled(z)
+    x0 = min(max(0, round((pixel[0] + 0.5) * z - w / 2)), big.width - w)
+    y0 = min(max(0, round((pixel[1] + 0.5) * z - h / 2)), big.height - h)
+    return big.crop(x0, y0, w, h)
 
 
 def normal_colors(scene: GaussianScene, cam: Camera) -> torch.Tensor:
@@ -252,7 +262,7 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
         gif.append(to_uint8(m["rgb"]))
     with atomic_path(out_dir / "turntable.gif") as tmp:
         iio.imwrite(tmp, np.stack(gif), extension=".gif", duration=1000.0 / cfg.fps, loop=0)
-    cu = closeup_camera(cams[keys[0]], pixel, cfg.closeup_zoom)
+    cu = closeup_camera(cams[keys[0]], pixel, cfg.closeup_zoom, cfg.closeup_size)
     m = render_maps(scene, cu, cfg)
     save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
     save_png(out_dir / "closeup_depth.png", depth_image(m["depth"], m["alpha"], near, far))
@@ -317,9 +327,10 @@ def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg:
 
 
 def render_texture_reference(style: GaussianScene, content: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
-                             progress: bool = False, s0: float | None = None) -> dict:
+                             progress: bool = False, s0: float | None = None, element_length: float | None = None) -> dict:
     """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`
-    and ``render.json`` (cameras, zoom) under ``out_dir``."""
+    and ``render.json`` (cameras, zoom, the style's element length on the content if given) under
+    ``out_dir``."""
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
@@ -329,8 +340,8 @@ def render_texture_reference(style: GaussianScene, content: GaussianScene, out_d
         m = rasterize(style, cam, background=cfg.background)
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
         save_element_frame(style, cam, out_dir, i)
-    info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "config": asdict(cfg),
-            "cameras": camera_dicts(cams)}
+    info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "s0": s0, "element_length": element_length,
+            "config": asdict(cfg), "cameras": camera_dicts(cams)}
     write_json(out_dir / "render.json", info)
     return info
 
