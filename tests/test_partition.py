@@ -244,7 +244,8 @@ def test_select_config_checks_mode_and_radius():
 
 def _trained_like_patch(seed=0):
     """A procedural pebble patch plus what training adds: floaters far outside, translucent haze over
-    it and opaque Gaussians inside the pebbles (labels kept; index sets returned)."""
+    it, opaque Gaussians inside the pebbles and large opaque blobs under the ground (labels kept; index
+    sets returned)."""
     from wast3d.procedural import style_scene
 
     g = torch.Generator().manual_seed(seed)
@@ -256,14 +257,17 @@ def _trained_like_patch(seed=0):
     # inside the pebbles (their shells hide them from above): 6 around each pebble's centroid
     cents = torch.stack([s.means[s.element == j].mean(0) for j in s.element.unique() if j > 0])
     buried = (cents[:, None] + 0.01 * torch.randn(len(cents), 6, 3, generator=g)).reshape(-1, 3)
-    extra = [GaussianScene.from_activated(p, torch.full((len(p), 3), 0.01), opacities=o)
-             for p, o in ((far, 0.9), (haze, 0.02), (buried, 0.95))]
+    # (as many as the demo's trained pebbles have: more than 1 %, so the core box keeps most of them)
+    under = torch.cat([torch.rand(600, 2, generator=g) * 1.6 - 0.8, -0.06 - 0.09 * torch.rand(600, 1, generator=g)], 1)
+    extra = [GaussianScene.from_activated(p, torch.full((len(p), 3), r), opacities=o)
+             for p, o, r in ((far, 0.9, 0.01), (haze, 0.02, 0.01), (buried, 0.95, 0.01), (under, 1.0, 0.05))]
     for e in extra:
         e.element = torch.zeros(len(e), dtype=torch.long)
     out = GaussianScene.concat([s, *extra])
-    sizes = [n, len(far), len(haze), len(buried)]
+    sizes = [n, len(far), len(haze), len(buried), len(under)]
     bounds = np.cumsum([0] + sizes)
-    return out, {k: torch.arange(bounds[i], bounds[i + 1]) for i, k in enumerate(("patch", "far", "haze", "buried"))}
+    return out, {k: torch.arange(bounds[i], bounds[i + 1])
+                 for i, k in enumerate(("patch", "far", "haze", "buried", "under"))}
 
 
 def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
@@ -285,15 +289,20 @@ def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
     assert int(kept[parts["far"]].sum()) == 0  # floaters outside the patch box
     assert int(kept[parts["haze"]].sum()) == 0  # translucent
     assert float(kept[parts["buried"]].double().mean()) < 0.2  # hidden inside the pebbles, seen from above
-    idx_nv, _ = clean_style(scene, StyleCleanConfig(visibility=False))
+    idx_nv, rep_nv = clean_style(scene, StyleCleanConfig(visibility=False))
     assert float(torch.isin(parts["buried"], idx_nv).double().mean()) > 0.9  # only the visibility test finds them
+    # under the ground: found by height alone; nothing of the patch itself goes with them
+    assert not torch.isin(parts["under"], idx_nv).any() and rep_nv["removed_below_ground"] > len(parts["under"]) / 2
+    assert abs(rep_nv["ground_height"]) < 0.02 and rep_nv["relief_height"] > 0.05
+    idx_off, _ = clean_style(scene, StyleCleanConfig(visibility=False, below_ground=0))
+    assert float(torch.isin(parts["under"], idx_off).double().mean()) > 0.5
     assert rep["removed_outside_patch"] >= len(parts["far"]) and rep["kept"] == len(idx)
     assert "style cleaning: kept" in caplog.text
     big = scene.subset(parts["patch"][:50])
     big = GaussianScene(**{**big.tensors(), "log_scales": big.log_scales + 3.0}, element=big.element)
     with_big = GaussianScene.concat([scene, big])
-    _, rep_big = clean_style(with_big, StyleCleanConfig(visibility=False, max_scale=3.0))
-    assert rep_big["removed_oversized"] == 50  # 20x the median size: oversized
+    idx_big, rep_big = clean_style(with_big, StyleCleanConfig(visibility=False, max_scale=3.0, below_ground=0))
+    assert rep_big["removed_oversized"] >= 50 and int((idx_big >= len(scene)).sum()) == 0  # 20x the median: oversized
     idx, rep = clean_style(scene, StyleCleanConfig(enabled=False))
     assert len(idx) == len(scene) and rep["skipped"]
     with pytest.raises(ValueError, match="no Gaussians"):
@@ -355,6 +364,15 @@ def test_outward_normals_and_style_up():
     peb = style_scene("pebbles", 6000).means.double()
     assert float(style_up(peb)[2]) > 0.99
     assert float(style_up(-peb)[2]) < -0.99  # an upside-down patch: its up points down
+    # a trained patch's unseen underside: a few large blobs down to 0.15 below the ground turn the skew
+    # (the auto rule) over; the declared axis does not depend on what is under the ground
+    blobs = torch.rand(300, 3, generator=g, dtype=D64) * torch.tensor([2.0, 2.0, -0.15], dtype=D64) - \
+        torch.tensor([1.0, 1.0, 0.0], dtype=D64)
+    trained = torch.cat([peb, blobs])
+    assert float(style_up(trained)[2]) < 0 and float(style_up(trained, "z")[2]) > 0.99
+    assert float(style_up(peb, "-z")[2]) < -0.99 and float(style_up(peb, [0.0, 0.0, 1.0])[2]) > 0.99
+    with pytest.raises(ValueError, match="register.style_up must be"):
+        RegistrationConfig(style_up="up")
 
 
 def test_registration_puts_the_elements_on_the_outside():

@@ -67,13 +67,19 @@ class RegistrationConfig:
     scale: float = 0.0  # s0 explicitly; 0: from element_scale
     element_scale: float = 0.07  # one style relief length on the content, as a fraction of its diameter; 0: density-matched s0
     scale_range: float = 1.5
+    style_up: str = "z"  # the side the style's elements stand on: a world axis (z, -z, y, -y, x, -x) or auto (skew)
     seed: int = 0
+
+    def __post_init__(self):
+        if self.style_up != "auto" and self.style_up not in UP_AXES:
+            raise ValueError(f"register.style_up must be 'auto' or one of {', '.join(UP_AXES)}, got '{self.style_up}'")
 
 
 @dataclass
 class Registration:
     """Per cluster (K): R [K,3,3], s [K,3], t [K,3] (eq. 7), p [K,3], mu [K,3], residual_init [K],
-    residual [K] (in style spacings), s0 (scalar)."""
+    residual [K] (in style spacings), s0 (scalar), style_spacing (scalar), style_up [3] (the style's up
+    that the outward content normals were mapped onto, :func:`style_up`)."""
 
     R: torch.Tensor
     s: torch.Tensor
@@ -84,6 +90,7 @@ class Registration:
     residual: torch.Tensor
     s0: float
     style_spacing: float
+    style_up: torch.Tensor
 
     def apply(self, points: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         """Eq. 7's map of content points into the style scene: S R (g - t); points [N,3], labels [N]."""
@@ -100,6 +107,9 @@ class Registration:
 
     @classmethod
     def from_npz(cls, d: dict) -> "Registration":
+        missing = sorted(set(cls.__dataclass_fields__) - set(d))
+        if missing:
+            raise ValueError(f"registration file lacks {', '.join(missing)} (written by an older wast3d?): run register again")
         return cls(**{k: (torch.from_numpy(np.asarray(d[k])) if np.asarray(d[k]).ndim else float(d[k]))
                       for k in cls.__dataclass_fields__})
 
@@ -115,22 +125,38 @@ def mean_spacing(points: torch.Tensor, max_points: int = 200_000, seed: int = 0)
     return max(float(d.mean()), 1e-12)
 
 
-def patch_frame(style: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+            "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
+
+
+def patch_frame(style: torch.Tensor, up="auto") -> tuple[np.ndarray, np.ndarray]:
     """(centre [3], axes [3, 3]) of a style patch [M, 3]: rows by decreasing variance (the patch plane,
-    then its normal), the normal signed so that the heights along it have a positive skew (elements
-    stand up from the ground, their tops are the rare high points): the patch's *up*."""
+    then its normal), the normal signed to point to the patch's *up*, the side its elements stand on.
+
+    ``up``: a world axis (``"z"``, ``"-y"``, ... of ``UP_AXES``) or a direction [3] (the normal's sign
+    agrees with it), or
+    ``"auto"``: the sign that gives the heights along the normal a positive skew (elements stand up from
+    the ground, their tops are the rare high points). The skew is right on every procedural style and
+    wrong on the demo's trained pebbles, whose unseen underside holds large opaque Gaussians down to 0.15
+    below the ground (a tail the other way); the side the training cameras saw is the reliable up."""
     x = style.detach().double().cpu().numpy()
     c = x.mean(0)
     axes = np.linalg.svd(x - c, full_matrices=False)[2]
-    h = (x - c) @ axes[2]
-    if ((h - h.mean()) ** 3).mean() < 0:
+    if up == "auto":
+        h = (x - c) @ axes[2]
+        flip = ((h - h.mean()) ** 3).mean() < 0
+    elif not isinstance(up, str) or up in UP_AXES:
+        flip = float(axes[2] @ np.asarray(UP_AXES[up] if isinstance(up, str) else up, dtype=np.float64)) < 0
+    else:
+        raise ValueError(f"style up must be 'auto' or one of {', '.join(UP_AXES)}, got '{up}'")
+    if flip:
         axes[2] = -axes[2]
     return c, axes
 
 
-def style_up(style: torch.Tensor) -> torch.Tensor:
+def style_up(style: torch.Tensor, up="auto") -> torch.Tensor:
     """[3] the style patch's up (:func:`patch_frame`)."""
-    return torch.from_numpy(patch_frame(style)[1][2].copy()).to(torch.float64)
+    return torch.from_numpy(patch_frame(style, up)[1][2].copy()).to(torch.float64)
 
 
 def outward_normals(content: torch.Tensor, labels: torch.Tensor, normals: torch.Tensor, grid: int = 64,
@@ -183,12 +209,12 @@ def outward_normals(content: torch.Tensor, labels: torch.Tensor, normals: torch.
     return torch.where(outward[:, None], normals.double(), -normals.double())
 
 
-def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02) -> float:
+def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> float:
     """The style's relief length L: twice the first zero crossing of the radial autocorrelation of its
     top-surface height field. style: [M, 3] (a patch: ground with elements on it) -> L, in its units.
 
-    The patch's plane is its two largest principal axes, its normal the third, oriented so that the
-    heights' skew is positive (elements stand up from the ground); on a ``grid`` x ``grid`` raster of the
+    The patch's plane is its two largest principal axes, its normal the third, oriented to the patch's
+    up (``up``, :func:`patch_frame`); on a ``grid`` x ``grid`` raster of the
     plane's ``q``..``1-q`` box, h(cell) = the largest height there (the visible top), empty cells
     left out of the autocorrelation A(r) = sum h(x) h(x + r) / sum 1 (mean removed, counts from the
     cells' own autocorrelation, both by FFT), averaged over |r|. A field of bumps of width w decorrelates
@@ -197,7 +223,7 @@ def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02) -> floa
     demo's trained pebbles: 1.65 raw (floaters), 0.37 cleaned (surface.clean_style): clean first."""
     if len(style) < 16:
         raise ValueError(f"relief length: {len(style)} style points (need at least 16)")
-    c, axes = patch_frame(style)
+    c, axes = patch_frame(style, up)
     uvw = (style.detach().double().cpu().numpy() - c) @ axes.T
     w = uvw[:, 2]
     lo, hi = np.quantile(uvw[:, :2], q, axis=0), np.quantile(uvw[:, :2], 1 - q, axis=0)
@@ -230,7 +256,7 @@ def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConf
     why = None
     if cfg.element_scale > 0:
         try:
-            L = relief_length(style)
+            L = relief_length(style, up=cfg.style_up)
         except ValueError as e:  # a flat style (a printed label) has no relief to size its elements by
             why = f"element_scale not applicable ({e}); density rule used"
             log.warning("registration: %s", why)
@@ -334,7 +360,7 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     n_content = vecs[:, :, 0]
     if cfg.orient:  # outward content normals onto the style's up (see the module docstring)
         n_content = outward_normals(content, labels, n_content)
-        up = style_up(style)
+        up = style_up(style, cfg.style_up)
         n_style = torch.where(((n_style * up).sum(-1) >= 0)[:, None], n_style, -n_style)
     Fc = frame_from_normal(n_content)  # columns: cluster tangent, tangent, normal
     flip = torch.where(sign == 0, 1.0, -1.0).to(style).repeat(K)
@@ -355,7 +381,8 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     # refine the best start on every point of its cluster
     R, s, p, res_final, _ = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations)
     t = mu - torch.einsum("kji,kj->ki", R, p / s)
-    reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style)
+    reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style,
+                       style_up(style, cfg.style_up))
     log.info("registration: %d clusters x %d starts; residual %.3f -> %.3f style spacings (mean); s0 = %.4g",
              K, M, float(reg.residual_init.mean()), float(reg.residual.mean()), s0)
     return reg

@@ -328,9 +328,11 @@ def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg:
 
 def render_texture_reference(style: GaussianScene, content: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
                              progress: bool = False, s0: float | None = None, element_length: float | None = None) -> dict:
-    """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`
-    and ``render.json`` (cameras, zoom, the style's element length on the content if given) under
-    ``out_dir``."""
+    """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`,
+    ``key_00_rgb.png`` and ``closeup_{rgb,normal}.png`` (the first frame and its close-up, as
+    :func:`render_turntable` makes them: the style at the pixel scale of the result's close-up, its
+    fair reference) and ``render.json`` (cameras, zoom, the style's element length on the content if
+    given) under ``out_dir``."""
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
@@ -340,8 +342,14 @@ def render_texture_reference(style: GaussianScene, content: GaussianScene, out_d
         m = rasterize(style, cam, background=cfg.background)
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
         save_element_frame(style, cam, out_dir, i)
+        if i == 0:
+            save_png(out_dir / "key_00_rgb.png", to_uint8(m["rgb"]))
+            cu = closeup_camera(cam, fragment_pixel(m["alpha"]), cfg.closeup_zoom, cfg.closeup_size)
+    m = render_maps(style, cu, cfg)
+    save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
+    save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
     info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "s0": s0, "element_length": element_length,
-            "config": asdict(cfg), "cameras": camera_dicts(cams)}
+            "config": asdict(cfg), "cameras": camera_dicts(cams + [cu])}
     write_json(out_dir / "render.json", info)
     return info
 

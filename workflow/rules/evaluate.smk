@@ -113,6 +113,7 @@ rule comparison_sheet:
     input:
         content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
         style=f"{RESULTS}/render/scenes/{{style}}",
+        reference=f"{RESULTS}/render/texture_reference/{{content}}__{{style}}",
         methods=lambda w: [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in TABLE1_METHODS if m != "input"],
     output:
         report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
@@ -120,7 +121,7 @@ rule comparison_sheet:
         exe=WAST3D,
         columns=lambda w, input: " ".join(
             shlex.quote(f"{label}={path}") for label, path in
-            [("content", input.content), ("style", input.style)]
+            [("content", input.content), ("style", input.style), ("style at the result's scale", input.reference)]
             + [(TABLE1_METHODS[m], p) for m, p in zip([m for m in TABLE1_METHODS if m != "input"], input.methods)]),
     conda:
         "../envs/wast3d.yaml"
