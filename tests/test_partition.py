@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
-from wast3d.gaussians import GaussianScene
+from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
+from wast3d.geometry import frame_from_normal
 from wast3d.registration import RegistrationConfig, base_scale, random_rotation, register, relief_length
 from wast3d.selection import SelectConfig, select, select_footprint
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
@@ -152,6 +153,39 @@ def test_surface_sampling_skip_and_resampling(caplog):
     assert len(idx) == len(scene) and rep["skipped"] and "skipped" in caplog.text
     idx, rep = sample_surface(scene, SurfaceConfig(visibility=False, outlier_k=0, max_points=500))
     assert len(idx) == 500 and rep["removed_by_resampling"] == len(scene) - 500
+
+
+def test_backprojected_surface_is_uniform_by_area_whatever_the_gaussian_sizes():
+    """A sphere drawn by 8,000 small Gaussians on one hemisphere and 800 large ones on the other: the
+    Gaussians' density differs 10x, the back-projected points' does not; they lie on the sphere, face
+    outward and keep each side's colour."""
+    from wast3d.surface import surface_points
+
+    g = torch.Generator().manual_seed(0)
+    u = torch.randn(20000, 3, generator=g)
+    u = u / u.norm(dim=1, keepdim=True)
+    top, bottom = u[u[:, 2] > 0][:8000], u[u[:, 2] <= 0][:800]
+    q = rotmat_to_quat(frame_from_normal(torch.cat([top, bottom]).double())).float()
+    sc = torch.cat([torch.tensor([0.03, 0.03, 0.003]).expand(len(top), 3), torch.tensor([0.1, 0.1, 0.01]).expand(len(bottom), 3)])
+    rgb = torch.cat([torch.tensor([0.9, 0.1, 0.1]).expand(len(top), 3), torch.tensor([0.1, 0.1, 0.9]).expand(len(bottom), 3)])
+    scene = GaussianScene.from_activated(torch.cat([top, bottom]), sc, q, opacities=0.99, rgb=rgb)
+    out, rep = surface_points(scene, SurfaceConfig(mode="backproject", views=16, resolution=96, spacing=0.05,
+                                                   outlier_k=0))
+    r = out.means.norm(dim=1)
+    up = out.means[:, 2] > 0.1
+    down = out.means[:, 2] < -0.1
+    # on the sphere (a Gaussian draws all its pixels at its centre's depth: the large ones, 0.1 wide,
+    # put some points off it at the seam and the silhouettes)
+    assert ((r - 1).abs() < 0.08).double().mean() > 0.85 and (r[up] - 1).abs().median() < 0.03
+    assert rep["points"] == len(out) and rep["spacing"] > 0
+    assert 0.7 < int(up.sum()) / int(down.sum()) < 1.4  # by area (the Gaussians: 10 to 1)
+    assert out.rgb[up, 0].median() > 0.7 and out.rgb[down, 2].median() > 0.7
+    n = shortest_axis(out.quats, out.scales)
+    assert ((n * out.means / r[:, None]).sum(1).abs() > 0.8).double().mean() > 0.9  # normals along the radius
+    filtered, _ = surface_points(scene, SurfaceConfig(visibility=False, outlier_k=0))
+    assert len(filtered) == len(scene)  # the default mode keeps the Gaussians themselves
+    with pytest.raises(ValueError, match="surface.mode"):
+        SurfaceConfig(mode="mesh")
 
 
 def test_removed_floaters_do_not_occlude_the_surface():

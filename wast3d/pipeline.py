@@ -33,13 +33,13 @@ def make_config(cls, params: dict | None, stage: str):
 
 
 def run_surface(scene_ply: Path, out_ply: Path, out_json: Path, params: dict) -> None:
-    from .surface import SurfaceConfig, sample_surface
+    from .surface import SurfaceConfig, surface_points
 
     cfg = make_config(SurfaceConfig, params, "surface")
     scene = read_ply(scene_ply)
-    idx, report = sample_surface(scene, cfg)
+    out, report = surface_points(scene, cfg)
     report["source"] = str(scene_ply)
-    write_ply(out_ply, scene.subset(idx))
+    write_ply(out_ply, out)
     write_json(out_json, report)
 
 
