@@ -182,6 +182,10 @@ def test_backprojected_surface_is_uniform_by_area_whatever_the_gaussian_sizes():
     assert out.rgb[up, 0].median() > 0.7 and out.rgb[down, 2].median() > 0.7
     n = shortest_axis(out.quats, out.scales)
     assert ((n * out.means / r[:, None]).sum(1).abs() > 0.8).double().mean() > 0.9  # normals along the radius
+    # spacing 0: about one point per Gaussian kept (the median spacing of the small ones alone would give
+    # the large ones' hemisphere far more)
+    auto, rep0 = surface_points(scene, SurfaceConfig(mode="backproject", views=16, resolution=96, outlier_k=0))
+    assert 0.5 * len(scene) < len(auto) < 1.3 * len(scene) and rep0["spacing"] > 0
     filtered, _ = surface_points(scene, SurfaceConfig(visibility=False, outlier_k=0))
     assert len(filtered) == len(scene)  # the default mode keeps the Gaussians themselves
     with pytest.raises(ValueError, match="surface.mode"):

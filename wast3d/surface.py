@@ -19,7 +19,8 @@ steps 1-2, the Gaussians kept are rendered from the ``views`` orbit cameras (exp
 the normals of their shortest axes), every pixel with alpha > 0.9 whose surface faces the camera
 within 60 degrees is back-projected to a 3D point,
 and the points of all views are fused on a voxel grid of ``spacing`` (a fraction of the scene's robust
-radius; 0: the kept Gaussians' median spacing): one point per voxel, the mean of its position, its
+radius; 0: about as many points as Gaussians kept, never finer than their median spacing; the median
+spacing alone gave a capture with large Gaussians 10x as many points as Gaussians): one point per voxel, the mean of its position, its
 straight colour and its normal. The result is spread by area over the visible surface whatever the
 sizes of the Gaussians that drew it (a trained capture's Gaussians span 0.004-0.068 in largest axis):
 a cluster then covers a fixed area and every content point, with uniform mass, stands for the same
@@ -77,7 +78,7 @@ class SurfaceConfig:
     max_points: int = 0  # 0: no resampling
     density_k: int = 8
     mode: str = "filter"  # filter: the Gaussians kept; backproject: points back-projected from renders, thinned
-    spacing: float = 0.0  # backproject: voxel size as a fraction of the scene's radius (0: the median spacing)
+    spacing: float = 0.0  # backproject: voxel size as a fraction of the scene's radius (0: about one point per Gaussian kept)
     seed: int = 0
 
     def __post_init__(self):
@@ -238,17 +239,13 @@ def sample_surface(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[torch.Tens
 
 
 @torch.no_grad()
-def backproject_surface(scene: GaussianScene, views: int, resolution: int, spacing: float,
-                        elevations_deg: tuple = CONTENT_ELEVATIONS) -> GaussianScene:
-    """Surface points of ``scene`` (module docstring, ``mode: backproject``): rendered from ``views`` orbit
-    cameras at ``resolution`` px, pixels with alpha > 0.9 back-projected and fused one per voxel of
-    side ``spacing`` (scene units) -> a scene of flat Gaussians facing the surface normal."""
-    from .gaussians import rotmat_to_quat
-    from .geometry import frame_from_normal
+def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
+                         elevations_deg: tuple = CONTENT_ELEVATIONS) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """World points [P, 3], straight colours [P, 3] and normals [P, 3] of the pixels of ``views`` orbit
+    renders of ``scene`` at ``resolution`` px that are solid (alpha > 0.9) and face the camera within 60
+    degrees (float64)."""
     from .render import RenderConfig, fit_orbit, render_maps
 
-    if spacing <= 0:
-        raise ValueError(f"back-projection: spacing must be > 0, got {spacing}")
     cfg = RenderConfig(normals="axis", background=(0.0, 0.0, 0.0))
     pts, cols, nrms = [], [], []
     for cam in fit_orbit(scene, views, resolution, elevations_deg=elevations_deg):
@@ -268,7 +265,22 @@ def backproject_surface(scene: GaussianScene, views: int, resolution: int, spaci
         nrms.append(m["normal"].double()[fg] @ R)
     if not pts or sum(len(p) for p in pts) == 0:
         raise ValueError("back-projection: no view shows any of the scene")
-    P, C, N = torch.cat(pts), torch.cat(cols).clamp(0, 1), torch.cat(nrms)
+    return torch.cat(pts), torch.cat(cols).clamp(0, 1), torch.cat(nrms)
+
+
+def voxel_count(points: torch.Tensor, spacing: float) -> int:
+    """How many voxels of side ``spacing`` the points [P, 3] occupy."""
+    return len(torch.unique(torch.floor((points - points.min(0).values) / spacing).long(), dim=0))
+
+
+def fuse_points(P: torch.Tensor, C: torch.Tensor, N: torch.Tensor, spacing: float, dtype=torch.float32) -> GaussianScene:
+    """One flat Gaussian per voxel of side ``spacing`` that points P [P, 3] occupy: the mean of their
+    positions, colours C and normals N (scales spacing/2, spacing/2, spacing/10, facing the normal)."""
+    from .gaussians import rotmat_to_quat
+    from .geometry import frame_from_normal
+
+    if spacing <= 0:
+        raise ValueError(f"back-projection: spacing must be > 0, got {spacing}")
     key = torch.floor((P - P.min(0).values) / spacing).long()
     _, inv = torch.unique(key, dim=0, return_inverse=True)
     n = int(inv.max()) + 1
@@ -278,25 +290,40 @@ def backproject_surface(scene: GaussianScene, views: int, resolution: int, spaci
     # one side of a surface agree; a thin part seen from both sides averages towards 0 and is re-normalized
     P, C, N = mean(P), mean(C), mean(N)
     N = N / N.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    dt = scene.dtype
-    quats = rotmat_to_quat(frame_from_normal(N)).to(dt)
-    scales = torch.tensor([spacing / 2, spacing / 2, spacing / 10], dtype=dt).expand(n, 3)
-    return GaussianScene.from_activated(P.to(dt), scales, quats, opacities=0.99, rgb=C.to(dt))
+    quats = rotmat_to_quat(frame_from_normal(N)).to(dtype)
+    scales = torch.tensor([spacing / 2, spacing / 2, spacing / 10], dtype=dtype).expand(n, 3)
+    return GaussianScene.from_activated(P.to(dtype), scales, quats, opacities=0.99, rgb=C.to(dtype))
+
+
+def backproject_surface(scene: GaussianScene, views: int, resolution: int, spacing: float,
+                        elevations_deg: tuple = CONTENT_ELEVATIONS) -> GaussianScene:
+    """Surface points of ``scene`` (module docstring, ``mode: backproject``) fused at ``spacing``."""
+    return fuse_points(*backprojected_pixels(scene, views, resolution, elevations_deg), spacing, scene.dtype)
 
 
 def surface_points(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[GaussianScene, dict]:
     """Stage 2's output scene and its report: the Gaussians :func:`sample_surface` keeps
-    (``mode: filter``), or points back-projected from them (``mode: backproject``)."""
+    (``mode: filter``), or points back-projected from them (``mode: backproject``; ``spacing`` 0: about
+    as many points as Gaussians kept, never finer than their median spacing h: h grown by
+    ``sqrt(n_h / n)``, n_h the voxels of side h the pixels occupy, until n_h is within 10 % of n)."""
     if cfg.mode == "filter" or not cfg.enabled:
         idx, report = sample_surface(scene, cfg)
         return scene.subset(idx), report
     idx, report = sample_surface(scene, replace(cfg, visibility=False, max_points=0))  # floaters and haze out
     kept = scene.subset(idx)
-    from .render import scene_bounds
+    P, C, N = backprojected_pixels(kept, cfg.views, cfg.resolution)
+    if cfg.spacing > 0:
+        from .render import scene_bounds
 
-    _, radius = scene_bounds(kept)
-    h = cfg.spacing * radius if cfg.spacing > 0 else float(knn(kept.means, kept.means, 1, exclude_self=True)[0].median())
-    out = backproject_surface(kept, cfg.views, cfg.resolution, h)
+        h = cfg.spacing * scene_bounds(kept)[1]
+    else:
+        h = float(knn(kept.means, kept.means, 1, exclude_self=True)[0].median()) if len(kept) > 1 else 1.0
+        for _ in range(4):  # the count falls slower than 1 / h^2 where the samples have depth noise
+            grow = (voxel_count(P, h) / len(kept)) ** 0.5
+            if grow <= 1.05:
+                break
+            h *= grow
+    out = fuse_points(P, C, N, h, scene.dtype)
     report.update({"mode": "backproject", "spacing": h, "points": len(out), "kept": len(out)})
     log.info("surface sampling: %d points back-projected from %d Gaussians at spacing %.4g", len(out), len(kept), h)
     return out, report
