@@ -237,7 +237,7 @@ def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, par
     cfg = make_config(RenderConfig, params, "render")
     style = read_ply(style_ply)
     reg = None if registration is None else Registration.from_npz(load_npz(registration))
-    s0, length = (None, None) if reg is None else (reg.s0, None)
+    s0, length = None if reg is None else reg.s0, None
     if reg is not None:
         try:  # one relief length of the style, in content units: the coarse Chamfer's smoothing length
             length = relief_length(style.means, up=reg.style_up.tolist()) / s0

@@ -358,9 +358,9 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     cov = content.new_zeros(K, 3, 3).index_add_(0, labels, cent[:, :, None] * cent[:, None, :])
     _, vecs = torch.linalg.eigh(cov + 1e-12 * torch.eye(3, dtype=cov.dtype))
     n_content = vecs[:, :, 0]
+    up = style_up(style, cfg.style_up)
     if cfg.orient:  # outward content normals onto the style's up (see the module docstring)
         n_content = outward_normals(content, labels, n_content)
-        up = style_up(style, cfg.style_up)
         n_style = torch.where(((n_style * up).sum(-1) >= 0)[:, None], n_style, -n_style)
     Fc = frame_from_normal(n_content)  # columns: cluster tangent, tangent, normal
     flip = torch.where(sign == 0, 1.0, -1.0).to(style).repeat(K)
@@ -381,8 +381,7 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     # refine the best start on every point of its cluster
     R, s, p, res_final, _ = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations)
     t = mu - torch.einsum("kji,kj->ki", R, p / s)
-    reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style,
-                       style_up(style, cfg.style_up))
+    reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style, up)
     log.info("registration: %d clusters x %d starts; residual %.3f -> %.3f style spacings (mean); s0 = %.4g",
              K, M, float(reg.residual_init.mean()), float(reg.residual.mean()), s0)
     return reg

@@ -171,12 +171,17 @@ def normal_colors(scene: GaussianScene, cam: Camera) -> torch.Tensor:
     return n_cam * (1 - 2 * flip)
 
 
+def pixel_rays(cam: Camera, dtype=torch.float64) -> torch.Tensor:
+    """[H, W, 3] camera-frame direction through each pixel's centre, scaled to z = 1 (times a depth
+    map's z, the back-projected point)."""
+    ys, xs = torch.meshgrid(torch.arange(cam.height, dtype=dtype), torch.arange(cam.width, dtype=dtype), indexing="ij")
+    return torch.stack([(xs + 0.5 - cam.cx) / cam.fx, (ys + 0.5 - cam.cy) / cam.fy, torch.ones_like(xs)], -1)
+
+
 def normals_from_depth(depth: torch.Tensor, alpha: torch.Tensor, cam: Camera) -> torch.Tensor:
     """Camera-frame normals [H, W, 3] from the expected-depth map by central differences of the
     back-projected points (zero where alpha <= 0.5 or a neighbour is background)."""
-    H, W = depth.shape
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=depth.dtype), torch.arange(W, dtype=depth.dtype), indexing="ij")
-    P = torch.stack([(xs + 0.5 - cam.cx) / cam.fx * depth, (ys + 0.5 - cam.cy) / cam.fy * depth, depth], -1)
+    P = pixel_rays(cam, depth.dtype) * depth[..., None]
     dx = torch.zeros_like(P)
     dy = torch.zeros_like(P)
     dx[:, 1:-1] = P[:, 2:] - P[:, :-2]

@@ -41,7 +41,7 @@ that the style's renders never show. *Hidden* is judged by what each Gaussian dr
 (:func:`seen_fraction`: the share of it that its best view from above shows), not by its centre's
 distance to the rendered depth: a trained surface is made of overlapping Gaussians whose centres lie
 off it, and the depth test at 0.02 scene radii removed visible ones (dark spots in the pebbles) while
-at 0.05 it kept opaque interior ones. *Below the ground* (:func:`ground_height`): Gaussians whose
+at 0.05 it kept opaque interior ones. *Below the ground*: Gaussians whose
 centre lies more than ``below_ground`` relief heights under the ground a view from above meets
 (:func:`ground_and_relief`). A view from above sees them only through gaps (their seen fractions,
 0.06-0.44, pass the hidden test), but every cut the selection makes through the patch exposes them,
@@ -244,15 +244,13 @@ def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
     """World points [P, 3], straight colours [P, 3] and normals [P, 3] of the pixels of ``views`` orbit
     renders of ``scene`` at ``resolution`` px that are solid (alpha > 0.9) and face the camera within 60
     degrees (float64)."""
-    from .render import RenderConfig, fit_orbit, render_maps
+    from .render import RenderConfig, fit_orbit, pixel_rays, render_maps
 
     cfg = RenderConfig(normals="axis", background=(0.0, 0.0, 0.0))
     pts, cols, nrms = [], [], []
     for cam in fit_orbit(scene, views, resolution, elevations_deg=elevations_deg):
         m = render_maps(scene, cam, cfg)
-        H, W = m["alpha"].shape
-        ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-        ray = torch.stack([(xs + 0.5 - cam.cx) / cam.fx, (ys + 0.5 - cam.cy) / cam.fy, torch.ones_like(xs)], -1)
+        ray = pixel_rays(cam)
         facing = -(m["normal"].double() * ray).sum(-1) / ray.norm(dim=-1)
         # solid pixels of surfaces within 60 degrees of facing the camera: at a silhouette and at grazing
         # views the expected depth mixes surfaces (each Gaussian draws all its pixels at its centre's depth)
