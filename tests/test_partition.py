@@ -426,3 +426,111 @@ def test_registration_puts_the_elements_on_the_outside():
     mu = torch.stack([c[labels == i].mean(0) for i in range(K)])
     up = torch.einsum("kij,kj->ki", reg.R, mu / mu.norm(dim=1, keepdim=True))[:, 2]
     assert float((up > 0).double().mean()) == 1.0
+
+
+def _tube_scene(n=3000, seed=0):
+    """A closed thin cylinder (radius 0.1, length 2, along x) of flat surface Gaussians, with the
+    outward normal of each point -> (scene, true normals [n, 3])."""
+    from wast3d.procedural import surface_gaussians
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0, 2 * np.pi, n)
+    x = rng.uniform(-1, 1, n)
+    nrm = np.stack([np.zeros(n), np.cos(a), np.sin(a)], 1)
+    pts = np.stack([x, 0.1 * np.cos(a), 0.1 * np.sin(a)], 1)
+    scene = surface_gaussians(pts, nrm, np.full((n, 3), 0.6), np.full(n, 0.02))
+    return scene, torch.from_numpy(nrm)
+
+
+def test_outward_normals_are_the_seen_side():
+    """Each Gaussian's shortest axis signed towards the cameras that see it: on a thin tube (where a
+    ray test through an occupancy grid of the whole shape goes wrong) nearly all point outward; the
+    sign does not depend on the sign the quaternion happens to give."""
+    from wast3d.surface import outward_normals
+
+    scene, truth = _tube_scene()
+    n, decided = outward_normals(scene, views=12, resolution=96)
+    agree = ((n * truth).sum(1) > 0).double()
+    assert decided.double().mean() > 0.9
+    assert agree[decided].mean() > 0.97
+    assert torch.allclose(n.norm(dim=1), torch.ones(len(n), dtype=D64), atol=1e-5)
+
+
+def test_wrapped_clusters_are_split_until_flat():
+    """A tube cluster (mean normal ~0) is split by its normals into pieces whose normals agree; a flat
+    cluster is left alone; min_split bounds the pieces; without normals the option is refused."""
+    from wast3d.clustering import flatness_of, split_wrapped
+
+    _, nrm = _tube_scene(2000)
+    flat = np.tile([[0.0, 0.0, 1.0]], (500, 1))
+    normals = np.concatenate([nrm.numpy(), flat])
+    labels = np.concatenate([np.zeros(2000, np.int64), np.ones(500, np.int64)])
+    assert flatness_of(labels, normals)[0] < 0.1
+    out, splits = split_wrapped(labels, normals, ClusterConfig(flatness=0.5, min_split=100))
+    assert splits >= 1 and (out[2000:] == out[2000]).all() and not np.isin(out[2000], out[:2000])
+    f = flatness_of(out, normals)
+    assert (f[np.unique(out[:2000])] >= 0.5).all()
+    assert np.bincount(out).min() >= 100
+    assert sorted(np.unique(out)) == list(range(out.max() + 1))
+    # the pieces are halves of the tube: connected, not alternating
+    same, _ = split_wrapped(labels, normals, ClusterConfig(flatness=0.5, min_split=1500))
+    assert (same == labels).all()
+    with pytest.raises(ValueError, match="outward normal"):
+        kmeans(torch.rand(50, 3), torch.rand(50, 3), ClusterConfig(n_clusters=2, flatness=0.5))
+
+
+def test_registration_uses_the_given_outward_normals():
+    """With normals, a cluster's normal is their mean: flipping the normals flips the registered patch's
+    up (the style's up then maps onto the other side); a wrong shape is an error."""
+    style = bumpy_patch(2000)
+    g = torch.Generator().manual_seed(1)
+    c = torch.rand(400, 3, generator=g, dtype=D64) * torch.tensor([1.0, 1.0, 0.01], dtype=D64)
+    labels = torch.zeros(400, dtype=torch.long)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=D64).expand(400, 3)
+    cfg = RegistrationConfig(landings=1, yaws=2, element_scale=0)
+    ups = []
+    for sign in (1.0, -1.0):
+        reg = register(c, labels, style, cfg, normals=sign * up)
+        ups.append(reg.R[0].T @ reg.style_up.to(D64))  # the style's up in the content frame
+    assert ups[0][2] > 0.9 and ups[1][2] < -0.9
+    with pytest.raises(ValueError, match="normals"):
+        register(c, labels, style, cfg, normals=up[:10])
+
+
+def test_backprojection_drops_points_in_free_space(monkeypatch):
+    """Pixel points in front of the surface other views show (a pixel's expected depth mixing a thin
+    part with what lies behind it) are dropped: on the real guitar capture that brings the
+    back-projected samples closer to the capture's own opaque Gaussians at the coarse scale; on a clean
+    opaque sphere it drops next to nothing."""
+    from conftest import real_3dgs
+
+    from wast3d.metrics import coarse_chamfer
+    from wast3d.ply import read_ply
+    import wast3d.surface as surface
+
+    scene = read_ply(real_3dgs("guitar.compressed.ply"))
+    cfg = SurfaceConfig(mode="backproject", views=12, resolution=128)
+    ref, _ = surface.surface_points(scene, replace_cfg(cfg, mode="filter"))
+    L = 0.07 * 2 * float(torch.quantile((ref.means - ref.means.median(0).values).norm(dim=1), 0.99))
+    with_check, _ = surface.surface_points(scene, cfg)
+    orig = surface.backprojected_pixels
+    monkeypatch.setattr(surface, "backprojected_pixels", lambda *a, **k: orig(*a, **{**k, "max_violations": 10**6}))
+    without, _ = surface.surface_points(scene, cfg)
+    d_with, d_without = coarse_chamfer(with_check.means, ref.means, L), coarse_chamfer(without.means, ref.means, L)
+    assert d_with < 0.97 * d_without, (d_with, d_without)  # 2.18 against 2.32 here; 1.61 against 2.08 at 24 views of 200 px
+    monkeypatch.setattr(surface, "backprojected_pixels", orig)
+    g = torch.Generator().manual_seed(0)
+    u = torch.randn(6000, 3, generator=g)
+    u = u / u.norm(dim=1, keepdim=True)
+    q = rotmat_to_quat(frame_from_normal(u.double())).float()
+    sphere = GaussianScene.from_activated(u, torch.tensor([0.04, 0.04, 0.004]).expand(len(u), 3), q, opacities=0.99,
+                                          rgb=torch.full((len(u), 3), 0.5))
+    P, _, _ = orig(sphere, 12, 96, max_violations=10**6)
+    P1, _, _ = orig(sphere, 12, 96)
+    assert len(P1) > 0.98 * len(P)
+
+
+def replace_cfg(cfg, **kw):
+    from dataclasses import replace
+
+    return replace(cfg, **kw)

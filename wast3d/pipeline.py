@@ -72,8 +72,16 @@ def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: 
 
     cfg = make_config(ClusterConfig, params, "cluster")
     content = read_ply(content_ply)
-    labels, cent, info = kmeans(content.means, content.rgb, cfg)
-    save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels))
+    normals = {}
+    if cfg.flatness > 0:
+        from .surface import outward_normals
+
+        n, decided = outward_normals(content)
+        normals = {"normals": n.float().numpy()}
+    labels, cent, info = kmeans(content.means, content.rgb, cfg, **{k: torch.from_numpy(v) for k, v in normals.items()})
+    if normals:
+        info["normals_decided_by_a_view"] = float(decided.double().mean())
+    save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels), **normals)
     write_json(Path(out_npz).with_suffix(".json"), info)
     if out_png:
         from .figures import clusters_picture
@@ -96,7 +104,9 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
     cfg = make_config(RegistrationConfig, params, "register")
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
-    reg = register(content.means, labels, style.means, cfg)
+    normals = load_npz(clusters_npz).get("normals")
+    reg = register(content.means, labels, style.means, cfg,
+                   normals=None if normals is None else torch.from_numpy(normals))
     save_npz(out_npz, **reg.to_npz())
     write_json(Path(out_npz).with_suffix(".json"), {
         "clusters": len(reg.R), "s0": reg.s0, "style_spacing": reg.style_spacing,

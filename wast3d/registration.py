@@ -315,8 +315,11 @@ def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, 
 
 @torch.no_grad()
 def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
-             cfg: RegistrationConfig = RegistrationConfig()) -> Registration:
-    """content: [N,3] points, labels: [N] in 0..K-1, style: [M,3] -> :class:`Registration`."""
+             cfg: RegistrationConfig = RegistrationConfig(), normals: torch.Tensor | None = None) -> Registration:
+    """content: [N,3] points, labels: [N] in 0..K-1, style: [M,3], normals: [N,3] the points' outward
+    normals if known (stage 3 makes them) -> :class:`Registration`. With normals, a cluster's normal is
+    their mean (already outward); without, its least-variance axis turned outward by
+    :func:`outward_normals`."""
     content, style = content.double(), style.double()
     labels = labels.long()
     K = int(labels.max()) + 1 if len(labels) else 0
@@ -361,6 +364,13 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     up = style_up(style, cfg.style_up)
     if cfg.orient:  # outward content normals onto the style's up (see the module docstring)
         n_content = outward_normals(content, labels, n_content)
+    if normals is not None:
+        if normals.shape != content.shape:
+            raise ValueError(f"registration: normals {tuple(normals.shape)} do not match the content {tuple(content.shape)}")
+        mean_n = _segment_mean(normals.double(), labels, K)
+        ok = mean_n.norm(dim=1) > 1e-3  # a cluster whose normals cancel keeps the ray test's normal
+        n_content = torch.where(ok[:, None], mean_n / mean_n.norm(dim=1, keepdim=True).clamp_min(1e-12), n_content)
+    if cfg.orient:
         n_style = torch.where(((n_style * up).sum(-1) >= 0)[:, None], n_style, -n_style)
     Fc = frame_from_normal(n_content)  # columns: cluster tangent, tangent, normal
     flip = torch.where(sign == 0, 1.0, -1.0).to(style).repeat(K)

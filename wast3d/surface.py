@@ -116,32 +116,65 @@ CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
 STYLE_ELEVATIONS = (15.0, 35.0, 55.0, 80.0)  # a style patch is seen from above (cf. render.export_blender)
 
 
+def _visible_in(scene: GaussianScene, cam, tol: float, radius: float) -> torch.Tensor:
+    """[N] bool: the centre lies on the surface ``cam`` renders (|z - depth| < tol * radius, alpha > 0.5)."""
+    from .rendering import rasterize
+
+    r = rasterize(scene, cam)
+    V = cam.world_to_cam.to(scene.means)
+    pc = scene.means @ V[:3, :3].T + V[:3, 3]
+    z = pc[:, 2]
+    front = z > cam.near
+    u = (cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx).floor().long()
+    v = (cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy).floor().long()
+    inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    idx = inside.nonzero().squeeze(1)
+    ok = (r["alpha"][v[idx], u[idx]] > 0.5) & ((z[idx] - r["depth"][v[idx], u[idx]]).abs() < tol * radius)
+    seen = torch.zeros(len(scene), dtype=torch.bool)
+    seen[idx[ok]] = True
+    return seen
+
+
 @torch.no_grad()
 def visible_mask(scene: GaussianScene, views: int, resolution: int, tol: float,
                  elevations_deg: tuple = CONTENT_ELEVATIONS) -> torch.Tensor:
     """[N] bool: the centre lies on the rendered surface (|z - depth| < tol * radius, alpha > 0.5)
     in at least one of ``views`` orbit views (at ``elevations_deg``, cycled)."""
     from .render import fit_orbit, scene_bounds
-    from .rendering import rasterize
 
     _, radius = scene_bounds(scene)
-    cams = fit_orbit(scene, views, resolution, elevations_deg=elevations_deg)
     seen = torch.zeros(len(scene), dtype=torch.bool)
-    for cam in cams:
-        r = rasterize(scene, cam)
-        V = cam.world_to_cam.to(scene.means)
-        pc = scene.means @ V[:3, :3].T + V[:3, 3]
-        z = pc[:, 2]
-        front = z > cam.near
-        u = (cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx).floor().long()
-        v = (cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy).floor().long()
-        inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        idx = inside.nonzero().squeeze(1)
-        d = r["depth"][v[idx], u[idx]]
-        a = r["alpha"][v[idx], u[idx]]
-        ok = (a > 0.5) & ((z[idx] - d).abs() < tol * radius)
-        seen[idx[ok]] = True
+    for cam in fit_orbit(scene, views, resolution, elevations_deg=elevations_deg):
+        seen |= _visible_in(scene, cam, tol, radius)
     return seen
+
+
+@torch.no_grad()
+def outward_normals(scene: GaussianScene, views: int = 24, resolution: int = 128, tol: float = 0.02,
+                    elevations_deg: tuple = CONTENT_ELEVATIONS) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each Gaussian's outward normal [N, 3] (float64) and whether a view decided its sign [N] bool.
+
+    The normal is the Gaussian's shortest axis n_i; its sign is that of
+    ``sum_v seen_iv sign(n_i . (c_v - x_i))`` over the ``views`` orbit cameras c_v whose render shows
+    the centre x_i on its surface (:func:`visible_mask`'s test): the outside of a surface is the side it
+    is seen from. Gaussians no view decides (hidden, or a tie) keep the side facing away from the
+    scene's centre. A ray test through an occupancy grid got 27 % of the ant's signs wrong on its thin
+    legs; this one is right wherever a camera sees the surface."""
+    from .gaussians import shortest_axis
+    from .render import fit_orbit, scene_bounds
+
+    centre, radius = scene_bounds(scene)
+    x = scene.means.detach()
+    n = shortest_axis(scene.quats.detach(), scene.scales.detach()).double()
+    vote = torch.zeros(len(scene), dtype=torch.float64)
+    for cam in fit_orbit(scene, views, resolution, elevations_deg=elevations_deg):
+        seen = _visible_in(scene, cam, tol, radius)
+        c = cam.center.double()
+        vote += seen.double() * torch.sign(((c - x.double()) * n).sum(1))
+    decided = vote != 0
+    away = torch.sign(((x.double() - torch.as_tensor(centre).double()) * n).sum(1))
+    sign = torch.where(decided, torch.sign(vote), torch.where(away == 0, torch.ones_like(away), away))
+    return n * sign[:, None], decided
 
 
 def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_deg: tuple) -> torch.Tensor:
@@ -240,15 +273,21 @@ def sample_surface(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[torch.Tens
 
 @torch.no_grad()
 def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
-                         elevations_deg: tuple = CONTENT_ELEVATIONS) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                         elevations_deg: tuple = CONTENT_ELEVATIONS, tol: float = 0.02,
+                         max_violations: int = 1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """World points [P, 3], straight colours [P, 3] and normals [P, 3] of the pixels of ``views`` orbit
     renders of ``scene`` at ``resolution`` px that are solid (alpha > 0.9) and face the camera within 60
-    degrees (float64)."""
-    from .render import RenderConfig, fit_orbit, pixel_rays, render_maps
+    degrees (float64), less the points that lie in front of the surface another view shows (depth
+    below that view's solid rendered depth by more than ``tol`` x the scene's radius) in more than
+    ``max_violations`` views: free space seen from elsewhere, where the expected depth of a pixel mixed a
+    thin part with what lies behind it."""
+    from .render import RenderConfig, fit_orbit, pixel_rays, render_maps, scene_bounds
 
     cfg = RenderConfig(normals="axis", background=(0.0, 0.0, 0.0))
-    pts, cols, nrms = [], [], []
-    for cam in fit_orbit(scene, views, resolution, elevations_deg=elevations_deg):
+    _, radius = scene_bounds(scene)
+    pts, cols, nrms, maps = [], [], [], []
+    cams = fit_orbit(scene, views, resolution, elevations_deg=elevations_deg)
+    for cam in cams:
         m = render_maps(scene, cam, cfg)
         ray = pixel_rays(cam)
         facing = -(m["normal"].double() * ray).sum(-1) / ray.norm(dim=-1)
@@ -261,9 +300,25 @@ def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
         pts.append((P - t) @ R)  # camera -> world: R^T (p - t)
         cols.append(m["rgb"].double()[fg] / m["alpha"].double()[fg][:, None])  # straight colour (black background)
         nrms.append(m["normal"].double()[fg] @ R)
+        maps.append((m["depth"].double(), m["alpha"] > 0.9))
     if not pts or sum(len(p) for p in pts) == 0:
         raise ValueError("back-projection: no view shows any of the scene")
-    return torch.cat(pts), torch.cat(cols).clamp(0, 1), torch.cat(nrms)
+    P, C, N = torch.cat(pts), torch.cat(cols).clamp(0, 1), torch.cat(nrms)
+    violations = torch.zeros(len(P), dtype=torch.long)
+    for cam, (depth, solid) in zip(cams, maps):
+        V = cam.world_to_cam.double()
+        pc = P @ V[:3, :3].T + V[:3, 3]
+        z = pc[:, 2]
+        u = (cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx).floor().long()
+        v = (cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy).floor().long()
+        inside = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        i = inside.nonzero().squeeze(1)
+        bad = solid[v[i], u[i]] & (z[i] < depth[v[i], u[i]] - tol * radius)
+        violations[i[bad]] += 1
+    keep = violations <= max_violations
+    log.info("back-projection: %d of %d pixel points lie in free space seen from %d+ other views (dropped)",
+             int((~keep).sum()), len(P), max_violations + 1)
+    return P[keep], C[keep], N[keep]
 
 
 def voxel_count(points: torch.Tensor, spacing: float) -> int:
@@ -309,7 +364,7 @@ def surface_points(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[GaussianSc
         return scene.subset(idx), report
     idx, report = sample_surface(scene, replace(cfg, visibility=False, max_points=0))  # floaters and haze out
     kept = scene.subset(idx)
-    P, C, N = backprojected_pixels(kept, cfg.views, cfg.resolution)
+    P, C, N = backprojected_pixels(kept, cfg.views, cfg.resolution, tol=cfg.depth_tolerance)
     if cfg.spacing > 0:
         from .render import scene_bounds
 
