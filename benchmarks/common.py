@@ -94,10 +94,13 @@ class PairRunner:
         from wast3d.registration import RegistrationConfig, register
 
         self.content, self.style = content, style
-        labels, _, _ = kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=target_cluster_size))
+        from wast3d.surface import outward_normals
+
+        normals = outward_normals(content)[0]
+        labels, _, _ = kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=target_cluster_size), normals)
         self.labels = torch.from_numpy(labels).long()
         t = time.perf_counter()
-        self.reg = register(content.means, self.labels, style.means, RegistrationConfig(scale=reg_scale))
+        self.reg = register(content.means, self.labels, style.means, RegistrationConfig(scale=reg_scale), normals=normals)
         self.reg_seconds = time.perf_counter() - t
         self.mapped = self.reg.apply(content.means.double(), self.labels)
 

@@ -62,12 +62,15 @@ def main() -> None:
         rows.append({"n": n, "step": "surface", "seconds": p.seconds, "peak_mb": p.mb, "out": len(idx)})
         c = content.subset(idx)
         with Peak() as p:
-            labels, _, info = kmeans(c.means, c.rgb, ClusterConfig(n_clusters=a.clusters))
+            from wast3d.surface import outward_normals
+
+            normals = outward_normals(c)[0]  # stage 3 makes them for cluster.flatness
+            labels, _, info = kmeans(c.means, c.rgb, ClusterConfig(n_clusters=a.clusters), normals)
         rows.append({"n": n, "step": f"kmeans ({info['algorithm']})", "seconds": p.seconds, "peak_mb": p.mb,
                      "out": info["clusters"]})
         labels = torch.from_numpy(labels)
         with Peak() as p:
-            reg = register(c.means, labels, style.means, RegistrationConfig())
+            reg = register(c.means, labels, style.means, RegistrationConfig(), normals=normals)
         rows.append({"n": n, "step": "register", "seconds": p.seconds, "peak_mb": p.mb,
                      "out": float(reg.residual.mean()), "residual_init": float(reg.residual_init.mean())})
         with Peak() as p:

@@ -106,12 +106,12 @@ def test_kmeans_deterministic_and_sizes():
     g = torch.Generator().manual_seed(0)
     pts = torch.rand(3000, 3, generator=g)
     rgb = torch.rand(3000, 3, generator=g)
-    cfg = ClusterConfig(target_cluster_size=300, seed=5)
+    cfg = ClusterConfig(target_cluster_size=300, seed=5, flatness=0)
     l1, c1, info = kmeans(pts, rgb, cfg)
     l2, c2, _ = kmeans(pts, rgb, cfg)
     assert np.array_equal(l1, l2) and np.allclose(c1, c2)
     assert info["clusters"] == 10 == len(c1) and set(np.unique(l1)) == set(range(10))
-    l3, _, _ = kmeans(pts, rgb, ClusterConfig(target_cluster_size=300, seed=6))
+    l3, _, _ = kmeans(pts, rgb, ClusterConfig(target_cluster_size=300, seed=6, flatness=0))
     assert not np.array_equal(l1, l3)
     assert n_clusters_for(1_000_000, ClusterConfig()) == 400 and n_clusters_for(5, ClusterConfig()) == 1
     assert n_clusters_for(1000, ClusterConfig(n_clusters=7)) == 7
@@ -119,7 +119,7 @@ def test_kmeans_deterministic_and_sizes():
 
 def test_kmeans_merges_small_clusters():
     pts = torch.cat([torch.rand(500, 3), torch.tensor([[50.0, 50.0, 50.0]])])  # a lone far point
-    labels, cent, info = kmeans(pts, torch.rand(501, 3), ClusterConfig(n_clusters=5, min_size=4))
+    labels, cent, info = kmeans(pts, torch.rand(501, 3), ClusterConfig(n_clusters=5, min_size=4, flatness=0))
     assert info["merged_small_clusters"] >= 1
     assert np.bincount(labels).min() >= 4 and len(cent) == labels.max() + 1
 
@@ -390,7 +390,7 @@ def test_outward_normals_and_style_up():
     th = torch.rand(6000, generator=g, dtype=D64) * 2 * torch.pi
     tube = torch.stack([torch.rand(6000, generator=g, dtype=D64) * 4 - 2, 0.3 * th.cos(), 0.3 * th.sin()], 1)
     for pts in (content_scene("sphere", 4000).means.double(), tube):
-        labels = torch.from_numpy(kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=200))[0]).long()
+        labels = torch.from_numpy(kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=200, flatness=0))[0]).long()
         K = int(labels.max()) + 1
         mu = _segment_mean(pts, labels, K)
         radial = mu.clone()
@@ -419,7 +419,7 @@ def test_registration_puts_the_elements_on_the_outside():
     from wast3d.procedural import content_scene, style_scene
 
     c = content_scene("sphere", 3000).means.double()
-    labels = torch.from_numpy(kmeans(c, torch.zeros_like(c), ClusterConfig(target_cluster_size=300))[0]).long()
+    labels = torch.from_numpy(kmeans(c, torch.zeros_like(c), ClusterConfig(target_cluster_size=300, flatness=0))[0]).long()
     st = style_scene("pebbles", 8000).means.double()
     reg = register(c, labels, st, RegistrationConfig(landings=1, yaws=4))
     K = len(reg.R)

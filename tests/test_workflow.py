@@ -126,7 +126,10 @@ def test_whole_dag_artifacts(tiny_run):
         assert read_ply(r / "scenes" / scene / "scene.ply").means.isfinite().all()
         assert (r / "scenes" / scene / "preview.png").stat().st_size > 0
     cl = np.load(r / "partition/blob/default/clusters.npz")
-    assert cl["labels"].max() == 2
+    info = json.loads((r / "partition/blob/default/clusters.json").read_text())
+    # 3 k-means clusters, each split by its normals until flat (cluster.flatness)
+    assert info["requested_clusters"] == 3 and cl["labels"].max() + 1 == 3 + info["split_wrapped_clusters"]
+    assert cl["normals"].shape == (len(cl["labels"]), 3)
     reg = np.load(r / "register/blob__peb/default/registration.npz")
     assert np.isfinite(reg["R"]).all() and np.allclose(np.linalg.det(reg["R"]), 1)
     sel = np.load(r / "register/blob__peb/default/selection.npz")

@@ -35,7 +35,7 @@ class ClusterConfig:
     target_cluster_size: int = 2500
     max_clusters: int = 400
     colour_weight: float = 0.2
-    flatness: float = 0.0  # split clusters whose mean outward normal is shorter (0: off, the paper)
+    flatness: float = 0.5  # split clusters whose mean outward normal is shorter (0: off, the paper)
     min_split: int = 100  # a split never makes a cluster smaller than this
     min_size: int = 4
     seed: int = 0
