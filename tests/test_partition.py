@@ -534,3 +534,17 @@ def replace_cfg(cfg, **kw):
     from dataclasses import replace
 
     return replace(cfg, **kw)
+
+
+def test_register_stage_names_the_clusters_file_when_its_normals_do_not_fit(tmp_path):
+    from conftest import random_scene
+
+    from wast3d.io_utils import save_npz
+    from wast3d.pipeline import run_register
+    from wast3d.ply import write_ply
+
+    write_ply(tmp_path / "c.ply", random_scene(60))
+    write_ply(tmp_path / "s.ply", random_scene(200, seed=1))
+    save_npz(tmp_path / "clusters.npz", labels=np.zeros(60, np.int64), normals=np.zeros((59, 3), np.float32))
+    with pytest.raises(ValueError, match=r"clusters\.npz: 'normals' has shape \(59, 3\)"):
+        run_register(tmp_path / "c.ply", tmp_path / "clusters.npz", tmp_path / "s.ply", tmp_path / "r.npz", None, {})

@@ -105,6 +105,9 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
     normals = load_npz(clusters_npz).get("normals")
+    if normals is not None and normals.shape != (len(content), 3):
+        raise ValueError(f"{clusters_npz}: 'normals' has shape {normals.shape}, expected ({len(content)}, 3) "
+                         "(the clusters were made for another content scene)")
     reg = register(content.means, labels, style.means, cfg,
                    normals=None if normals is None else torch.from_numpy(normals))
     save_npz(out_npz, **reg.to_npz())
