@@ -72,16 +72,18 @@ def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: 
 
     cfg = make_config(ClusterConfig, params, "cluster")
     content = read_ply(content_ply)
-    normals = {}
-    if cfg.flatness > 0:
+    normals = None
+    if cfg.flatness > 0:  # the split of wrapped clusters needs each point's outward normal
         from .surface import outward_normals
 
-        n, decided = outward_normals(content)
-        normals = {"normals": n.float().numpy()}
-    labels, cent, info = kmeans(content.means, content.rgb, cfg, **{k: torch.from_numpy(v) for k, v in normals.items()})
-    if normals:
+        normals, decided = outward_normals(content)
+        normals = normals.float()
+    labels, cent, info = kmeans(content.means, content.rgb, cfg, normals)
+    extra = {}
+    if normals is not None:
         info["normals_decided_by_a_view"] = float(decided.double().mean())
-    save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels), **normals)
+        extra["normals"] = normals.numpy()
+    save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels), **extra)
     write_json(Path(out_npz).with_suffix(".json"), info)
     if out_png:
         from .figures import clusters_picture

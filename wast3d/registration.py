@@ -362,13 +362,15 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     _, vecs = torch.linalg.eigh(cov + 1e-12 * torch.eye(3, dtype=cov.dtype))
     n_content = vecs[:, :, 0]
     up = style_up(style, cfg.style_up)
-    if cfg.orient:  # outward content normals onto the style's up (see the module docstring)
-        n_content = outward_normals(content, labels, n_content)
+    ok = torch.zeros(K, dtype=torch.bool)
     if normals is not None:
         if normals.shape != content.shape:
             raise ValueError(f"registration: normals {tuple(normals.shape)} do not match the content {tuple(content.shape)}")
         mean_n = _segment_mean(normals.double(), labels, K)
         ok = mean_n.norm(dim=1) > 1e-3  # a cluster whose normals cancel keeps the ray test's normal
+    if cfg.orient and not ok.all():  # outward content normals onto the style's up (see the module docstring)
+        n_content = outward_normals(content, labels, n_content)
+    if normals is not None:
         n_content = torch.where(ok[:, None], mean_n / mean_n.norm(dim=1, keepdim=True).clamp_min(1e-12), n_content)
     if cfg.orient:
         n_style = torch.where(((n_style * up).sum(-1) >= 0)[:, None], n_style, -n_style)

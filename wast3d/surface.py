@@ -116,20 +116,26 @@ CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
 STYLE_ELEVATIONS = (15.0, 35.0, 55.0, 80.0)  # a style patch is seen from above (cf. render.export_blender)
 
 
+def _pixels_of(points: torch.Tensor, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The points [N, 3] in front of ``cam`` that land inside its image: their indices [n], pixel columns
+    u [n], rows v [n] and camera depths z [n]."""
+    V = cam.world_to_cam.to(points)
+    pc = points @ V[:3, :3].T + V[:3, 3]
+    z = pc[:, 2]
+    u = (cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx).floor().long()
+    v = (cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy).floor().long()
+    inside = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    idx = inside.nonzero().squeeze(1)
+    return idx, u[idx], v[idx], z[idx]
+
+
 def _visible_in(scene: GaussianScene, cam, tol: float, radius: float) -> torch.Tensor:
     """[N] bool: the centre lies on the surface ``cam`` renders (|z - depth| < tol * radius, alpha > 0.5)."""
     from .rendering import rasterize
 
     r = rasterize(scene, cam)
-    V = cam.world_to_cam.to(scene.means)
-    pc = scene.means @ V[:3, :3].T + V[:3, 3]
-    z = pc[:, 2]
-    front = z > cam.near
-    u = (cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx).floor().long()
-    v = (cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy).floor().long()
-    inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-    idx = inside.nonzero().squeeze(1)
-    ok = (r["alpha"][v[idx], u[idx]] > 0.5) & ((z[idx] - r["depth"][v[idx], u[idx]]).abs() < tol * radius)
+    idx, u, v, z = _pixels_of(scene.means, cam)
+    ok = (r["alpha"][v, u] > 0.5) & ((z - r["depth"][v, u]).abs() < tol * radius)
     seen = torch.zeros(len(scene), dtype=torch.bool)
     seen[idx[ok]] = True
     return seen
@@ -306,14 +312,8 @@ def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
     P, C, N = torch.cat(pts), torch.cat(cols).clamp(0, 1), torch.cat(nrms)
     violations = torch.zeros(len(P), dtype=torch.long)
     for cam, (depth, solid) in zip(cams, maps):
-        V = cam.world_to_cam.double()
-        pc = P @ V[:3, :3].T + V[:3, 3]
-        z = pc[:, 2]
-        u = (cam.fx * pc[:, 0] / z.clamp_min(1e-9) + cam.cx).floor().long()
-        v = (cam.fy * pc[:, 1] / z.clamp_min(1e-9) + cam.cy).floor().long()
-        inside = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        i = inside.nonzero().squeeze(1)
-        bad = solid[v[i], u[i]] & (z[i] < depth[v[i], u[i]] - tol * radius)
+        i, u, v, z = _pixels_of(P, cam)
+        bad = solid[v, u] & (z < depth[v, u] - tol * radius)
         violations[i[bad]] += 1
     keep = violations <= max_violations
     log.info("back-projection: %d of %d pixel points lie in free space seen from %d+ other views (dropped)",
