@@ -76,6 +76,24 @@ def test_schema_errors_name_the_field(tmp_path, edit, field):
     assert field in (r.stdout + r.stderr)
 
 
+def test_stage_parameters_survive_the_shell(tmp_path):
+    """A stage's JSON parameters are shell-quoted in the command: an apostrophe in a path (a CLIP
+    checkpoint under "Bob's models") reaches the stage as written."""
+    import shlex
+
+    ckpt = tmp_path / "Bob's models" / "clip.pt"
+    ckpt.parent.mkdir()
+    ckpt.write_bytes(b"")
+    cfg = copy.deepcopy(TINY)
+    cfg["evaluation"]["clip"] = {"model": "ViT-B-32", "checkpoint": str(ckpt)}
+    r = snake(tmp_path, "-n", "-p", config=cfg)
+    cmds = [line for line in r.stdout.splitlines() if " evaluate " in line and "--params" in line]
+    assert cmds, r.stdout[-2000:]
+    argv = shlex.split(cmds[0].split(" 2> ")[0])
+    params = json.loads(argv[argv.index("--params") + 1])
+    assert params["clip"]["checkpoint"] == str(ckpt)
+
+
 def test_reference_errors(tmp_path):
     cfg = copy.deepcopy(TINY)
     cfg["pairs"] = [["blob", "nothere"]]
