@@ -141,7 +141,9 @@ def style_points(scene):
 
 
 def stage_json(params):
-    return json.dumps(params, separators=(",", ":"), sort_keys=True)
+    """A stage's parameters as JSON for the rules' ``--params '{params.cfg}'``: each apostrophe closes the
+    quotes, adds an escaped one and reopens them, so a path like "Bob's models" reaches the stage."""
+    return json.dumps(params, separators=(",", ":"), sort_keys=True).replace("'", "'\\''")
 
 
 # scenes that no pair of the run or of Table 1 uses are defined but not built (a config merged over the

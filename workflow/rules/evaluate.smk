@@ -20,7 +20,7 @@ rule render_method:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} --threads {threads} render {input.ply} {input.reference} {output} --no-progress --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} render {input.ply} {input.reference} {output} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule render_scene:
@@ -38,7 +38,7 @@ rule render_scene:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_scene_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} render {input.ply} {input.ply} {output} --no-progress --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} render {input.ply} {input.ply} {output} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule texture_reference:
@@ -58,7 +58,7 @@ rule texture_reference:
     benchmark:
         f"{RESULTS}/benchmarks/rules/texture_reference_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} texture-reference {input.style} {input.content} {output} --registration {input.reg} --no-progress --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} texture-reference {input.style} {input.content} {output} --registration {input.reg} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule colour_transfer:
@@ -78,7 +78,7 @@ rule colour_transfer:
     benchmark:
         f"{RESULTS}/benchmarks/rules/colour_transfer_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} colour-transfer {input.content} {input.style} {output.ply} --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} colour-transfer {input.content} {input.style} {output.ply} --params '{params.cfg}' 2> {log}"
 
 
 rule evaluate:
@@ -106,7 +106,7 @@ rule evaluate:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
         "{params.exe} --threads {threads} evaluate {input.result} {input.content} {input.style} {input.result_render} "
-        "{input.style_render} {input.texture_reference} {input.content_render} {output} {params.stylize_npz} --params {params.cfg:q} 2> {log}"
+        "{input.style_render} {input.texture_reference} {input.content_render} {output} {params.stylize_npz} --params '{params.cfg}' 2> {log}"
 
 
 rule comparison_sheet:

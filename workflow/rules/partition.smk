@@ -19,7 +19,7 @@ rule surface:
     benchmark:
         f"{RESULTS}/benchmarks/rules/surface_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} surface {input.ply} {output.ply} {output.json} --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} surface {input.ply} {output.ply} {output.json} --params '{params.cfg}' 2> {log}"
 
 
 rule style_clean:
@@ -42,7 +42,7 @@ rule style_clean:
     benchmark:
         f"{RESULTS}/benchmarks/rules/style_clean_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} style-clean {input.ply} {output.ply} {output.json} {params.labels} --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} style-clean {input.ply} {output.ply} {output.json} {params.labels} --params '{params.cfg}' 2> {log}"
 
 
 rule cluster:
@@ -63,7 +63,7 @@ rule cluster:
     benchmark:
         f"{RESULTS}/benchmarks/rules/cluster_{{content}}_{{partition}}.tsv"
     shell:
-        "{params.exe} --threads {threads} cluster {input.content} {output.npz} --picture {output.png} --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} cluster {input.content} {output.npz} --picture {output.png} --params '{params.cfg}' 2> {log}"
 
 
 rule register:
@@ -87,7 +87,7 @@ rule register:
         f"{RESULTS}/benchmarks/rules/register_{{content}}__{{style}}_{{partition}}.tsv"
     shell:
         "{params.exe} --threads {threads} register {input.content} {input.clusters} {input.style} {output.npz} "
-        "--picture {output.png} --params {params.cfg:q} 2> {log}"
+        "--picture {output.png} --params '{params.cfg}' 2> {log}"
 
 
 rule select:
@@ -110,4 +110,4 @@ rule select:
         f"{RESULTS}/benchmarks/rules/select_{{content}}__{{style}}_{{partition}}.tsv"
     shell:
         "{params.exe} --threads {threads} select {input.content} {input.clusters} {input.style} {input.reg} {output.npz} "
-        "--params {params.cfg:q} 2> {log}"
+        "--params '{params.cfg}' 2> {log}"

@@ -27,4 +27,4 @@ rule pretrain:
         f"{RESULTS}/benchmarks/rules/pretrain_{{scene}}.tsv"
     shell:
         "{params.exe} --threads {threads} pretrain {params.data} {output.ply} {output.csv} {output.json} "
-        "--checkpoint {params.ckpt} --no-progress --params {params.cfg:q} 2> {log}"
+        "--checkpoint {params.ckpt} --no-progress --params '{params.cfg}' 2> {log}"

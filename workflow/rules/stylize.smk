@@ -30,7 +30,7 @@ rule sinkhorn:
         f"{RESULTS}/benchmarks/rules/sinkhorn_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
         "{params.exe} --threads {threads} stylize {input.content} {input.clusters} {input.style} {input.reg} {input.sel} "
-        "{output.ply} {output.npz} {output.csv} --params {params.cfg:q} 2> {log}"
+        "{output.ply} {output.npz} {output.csv} --params '{params.cfg}' 2> {log}"
 
 
 rule rescale:
@@ -50,4 +50,4 @@ rule rescale:
     benchmark:
         f"{RESULTS}/benchmarks/rules/rescale_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} --threads {threads} rescale {input.ply} {input.npz} {output.ply} --params {params.cfg:q} 2> {log}"
+        "{params.exe} --threads {threads} rescale {input.ply} {input.npz} {output.ply} --params '{params.cfg}' 2> {log}"
