@@ -155,10 +155,11 @@ def test_surface_sampling_skip_and_resampling(caplog):
     assert len(idx) == 500 and rep["removed_by_resampling"] == len(scene) - 500
 
 
-def test_backprojected_surface_is_uniform_by_area_whatever_the_gaussian_sizes():
+@pytest.mark.parametrize("mode", ["backproject", "footprints"])
+def test_sampled_surface_is_uniform_by_area_whatever_the_gaussian_sizes(mode):
     """A sphere drawn by 8,000 small Gaussians on one hemisphere and 800 large ones on the other: the
-    Gaussians' density differs 10x, the back-projected points' does not; they lie on the sphere, face
-    outward and keep each side's colour."""
+    Gaussians' density differs 10x, the sampled points' (back-projected, or drawn over the footprints)
+    does not; they lie on the sphere, face outward and keep each side's colour."""
     from wast3d.surface import surface_points
 
     g = torch.Generator().manual_seed(0)
@@ -169,8 +170,7 @@ def test_backprojected_surface_is_uniform_by_area_whatever_the_gaussian_sizes():
     sc = torch.cat([torch.tensor([0.03, 0.03, 0.003]).expand(len(top), 3), torch.tensor([0.1, 0.1, 0.01]).expand(len(bottom), 3)])
     rgb = torch.cat([torch.tensor([0.9, 0.1, 0.1]).expand(len(top), 3), torch.tensor([0.1, 0.1, 0.9]).expand(len(bottom), 3)])
     scene = GaussianScene.from_activated(torch.cat([top, bottom]), sc, q, opacities=0.99, rgb=rgb)
-    out, rep = surface_points(scene, SurfaceConfig(mode="backproject", views=16, resolution=96, spacing=0.05,
-                                                   outlier_k=0))
+    out, rep = surface_points(scene, SurfaceConfig(mode=mode, views=16, resolution=96, spacing=0.05, outlier_k=0))
     r = out.means.norm(dim=1)
     up = out.means[:, 2] > 0.1
     down = out.means[:, 2] < -0.1
@@ -181,15 +181,43 @@ def test_backprojected_surface_is_uniform_by_area_whatever_the_gaussian_sizes():
     assert 0.7 < int(up.sum()) / int(down.sum()) < 1.4  # by area (the Gaussians: 10 to 1)
     assert out.rgb[up, 0].median() > 0.7 and out.rgb[down, 2].median() > 0.7
     n = shortest_axis(out.quats, out.scales)
-    assert ((n * out.means / r[:, None]).sum(1).abs() > 0.8).double().mean() > 0.9  # normals along the radius
+    along = (n * out.means / r[:, None]).sum(1)
+    assert (along.abs() > 0.8).double().mean() > 0.9  # normals along the radius
+    if mode == "footprints":  # signed by the views that see each Gaussian: outward
+        assert (along > 0.8).double().mean() > 0.9
     # spacing 0: about one point per Gaussian kept (the median spacing of the small ones alone would give
     # the large ones' hemisphere far more)
-    auto, rep0 = surface_points(scene, SurfaceConfig(mode="backproject", views=16, resolution=96, outlier_k=0))
+    auto, rep0 = surface_points(scene, SurfaceConfig(mode=mode, views=16, resolution=96, outlier_k=0))
     assert 0.5 * len(scene) < len(auto) < 1.3 * len(scene) and rep0["spacing"] > 0
     filtered, _ = surface_points(scene, SurfaceConfig(visibility=False, outlier_k=0))
     assert len(filtered) == len(scene)  # the default mode keeps the Gaussians themselves
     with pytest.raises(ValueError, match="surface.mode"):
         SurfaceConfig(mode="mesh")
+
+
+def test_footprint_samples_follow_each_gaussians_area_and_axes():
+    """Two flat Gaussians, the second with 4x the first's footprint (o s_1 s_2): it gets 4x the points,
+    spread along its two largest axes (standard deviations s_1, s_2, clipped at 2 of them) and none
+    across its shortest; colours and normals are their Gaussian's. A NaN scale is an error."""
+    from wast3d.surface import footprint_samples
+
+    means = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    scales = torch.tensor([[0.1, 0.05, 0.001], [0.4, 0.05, 0.001]])
+    q = torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]])
+    rgb = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    scene = GaussianScene.from_activated(means, scales, q, opacities=0.5, rgb=rgb)
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    P, C, N = footprint_samples(scene, 20000, normals, seed=0)
+    second = P[:, 0] > 2.5
+    assert 3.6 < int(second.sum()) / int((~second).sum()) < 4.4
+    d = P[second] - means[1].double()
+    assert abs(float(d[:, 0].std()) / 0.4 - 0.957) < 0.03  # a standard normal clipped at 2: std 0.957
+    assert float(d[:, 0].abs().max()) <= 0.8 + 1e-6 and float(d[:, 2].abs().max()) < 1e-9
+    assert torch.allclose(C[second], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(int(second.sum()), 3), atol=1e-3)
+    assert (N[second, 2] == -1).all() and (N[~second, 2] == 1).all()
+    bad = GaussianScene.from_activated(means, torch.tensor([[float("nan"), 0.05, 0.001], [0.4, 0.05, 0.001]]), q, opacities=0.5)
+    with pytest.raises(ValueError, match="footprint"):
+        footprint_samples(bad, 10, normals)
 
 
 def test_removed_floaters_do_not_occlude_the_surface():

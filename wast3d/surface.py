@@ -25,7 +25,13 @@ straight colour and its normal. The result is spread by area over the visible su
 sizes of the Gaussians that drew it (a trained capture's Gaussians span 0.004-0.068 in largest axis):
 a cluster then covers a fixed area and every content point, with uniform mass, stands for the same
 area in the transport. Each point becomes a flat Gaussian (scales spacing/2, spacing/2, spacing/10)
-facing its normal. ``mode: filter`` (default) keeps the Gaussians themselves.
+facing its normal. ``mode: footprints``: after steps 1-3, ``oversample`` points per Gaussian kept are
+drawn over the Gaussians' footprints, each Gaussian with probability by its footprint (opacity times
+its two largest scales), each point spread along its two largest axes (:func:`footprint_samples`),
+with its Gaussian's colour and outward normal (:func:`outward_normals`), and fused on the same voxel
+grid: uniform by area like the back-projection, but on the Gaussians themselves (no depth of a pixel
+mixing a thin part with what lies behind it). ``mode: filter`` (default) keeps the Gaussians
+themselves.
 
 Procedural and other already-clean scenes set ``enabled: false``: every Gaussian is kept and the
 report says the stage was skipped and why.
@@ -65,6 +71,9 @@ from .geometry import knn
 log = logging.getLogger(__name__)
 
 
+SURFACE_MODES = ("filter", "footprints", "backproject")
+
+
 @dataclass
 class SurfaceConfig:
     enabled: bool = True
@@ -77,13 +86,16 @@ class SurfaceConfig:
     depth_tolerance: float = 0.02
     max_points: int = 0  # 0: no resampling
     density_k: int = 8
-    mode: str = "filter"  # filter: the Gaussians kept; backproject: points back-projected from renders, thinned
-    spacing: float = 0.0  # backproject: voxel size as a fraction of the scene's radius (0: about one point per Gaussian kept)
+    mode: str = "filter"  # filter: the Gaussians kept; footprints: points drawn over them by area, thinned; backproject: points back-projected from renders, thinned
+    spacing: float = 0.0  # footprints, backproject: voxel size as a fraction of the scene's radius (0: about one point per Gaussian kept)
+    oversample: int = 8  # footprints: points drawn per Gaussian kept, before thinning
     seed: int = 0
 
     def __post_init__(self):
-        if self.mode not in ("filter", "backproject"):
-            raise ValueError(f"surface.mode must be 'filter' or 'backproject', got '{self.mode}'")
+        if self.mode not in SURFACE_MODES:
+            raise ValueError(f"surface.mode must be one of {SURFACE_MODES}, got '{self.mode}'")
+        if self.oversample < 1:
+            raise ValueError(f"surface.oversample must be >= 1, got {self.oversample}")
         if self.spacing < 0:
             raise ValueError(f"surface.spacing must be >= 0, got {self.spacing}")
 
@@ -326,6 +338,17 @@ def voxel_count(points: torch.Tensor, spacing: float) -> int:
     return len(torch.unique(torch.floor((points - points.min(0).values) / spacing).long(), dim=0))
 
 
+def voxel_means(P: torch.Tensor, spacing: float, *values: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The mean of the points P [P, 3] in each voxel of side ``spacing`` they occupy [V, 3], and the
+    mean of each of ``values`` ([P, D] each) over the same voxels (float64)."""
+    key = torch.floor((P - P.min(0).values) / spacing).long()
+    _, inv = torch.unique(key, dim=0, return_inverse=True)
+    n = int(inv.max()) + 1
+    count = torch.bincount(inv, minlength=n).double()[:, None]
+    return tuple(torch.zeros(n, x.shape[1], dtype=torch.float64).index_add_(0, inv, x.double()) / count
+                 for x in (P, *values))
+
+
 def fuse_points(P: torch.Tensor, C: torch.Tensor, N: torch.Tensor, spacing: float, dtype=torch.float32) -> GaussianScene:
     """One flat Gaussian per voxel of side ``spacing`` that points P [P, 3] occupy: the mean of their
     positions, colours C and normals N (scales spacing/2, spacing/2, spacing/10, facing the normal)."""
@@ -334,14 +357,10 @@ def fuse_points(P: torch.Tensor, C: torch.Tensor, N: torch.Tensor, spacing: floa
 
     if spacing <= 0:
         raise ValueError(f"back-projection: spacing must be > 0, got {spacing}")
-    key = torch.floor((P - P.min(0).values) / spacing).long()
-    _, inv = torch.unique(key, dim=0, return_inverse=True)
-    n = int(inv.max()) + 1
-    count = torch.bincount(inv, minlength=n).double()[:, None]
-    mean = lambda x: torch.zeros(n, x.shape[1], dtype=torch.float64).index_add_(0, inv, x) / count  # noqa: E731
     # normals of either sign fused as given: the renderer turns them towards each camera, and cameras on
     # one side of a surface agree; a thin part seen from both sides averages towards 0 and is re-normalized
-    P, C, N = mean(P), mean(C), mean(N)
+    P, C, N = voxel_means(P, spacing, C, N)
+    n = len(P)
     N = N / N.norm(dim=1, keepdim=True).clamp_min(1e-12)
     quats = rotmat_to_quat(frame_from_normal(N)).to(dtype)
     scales = torch.tensor([spacing / 2, spacing / 2, spacing / 10], dtype=dtype).expand(n, 3)
@@ -354,31 +373,72 @@ def backproject_surface(scene: GaussianScene, views: int, resolution: int, spaci
     return fuse_points(*backprojected_pixels(scene, views, resolution, elevations_deg), spacing, scene.dtype)
 
 
+@torch.no_grad()
+def footprint_samples(scene: GaussianScene, count: int, normals: torch.Tensor, seed: int = 0
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``count`` points [P, 3] drawn over the Gaussians' footprints by area, with their Gaussians' DC
+    colours [P, 3] and the given normals [N, 3] of their Gaussians [P, 3] (float64).
+
+    Gaussian i is drawn with probability ``o_i s_1 s_2`` (:func:`~wast3d.gaussians.footprint`), and a
+    point of it at ``mu_i + R_i (s_1 z_1, s_2 z_2, 0)``, z standard normal clipped to [-2, 2]: its two
+    largest axes span the surface it draws, its shortest one is across it. A large Gaussian of a trained
+    capture (the guitar's largest 1 % hold 22 % of the footprint) becomes many points spread over its
+    disc instead of one heavy point at its centre, onto which the transport would pile the style."""
+    from .gaussians import footprint
+
+    w = footprint(scene.scales, scene.opacities).clamp_min(0)
+    if not torch.isfinite(w).all() or float(w.sum()) <= 0:
+        raise ValueError("footprint sampling: the Gaussians' footprints are not finite and positive")
+    g = torch.Generator().manual_seed(seed)
+    parent = torch.multinomial(w / w.sum(), count, replacement=True, generator=g)
+    sc, order = scene.scales.detach().double()[parent].sort(dim=1, descending=True)
+    R = scene.rotations.detach().double()[parent]
+    axes = R.gather(2, order[:, None, :2].expand(-1, 3, 2))  # [P, 3, 2]: the two largest axes
+    z = torch.randn(count, 2, generator=g, dtype=torch.float64).clamp(-2, 2)
+    P = scene.means.detach().double()[parent] + (axes * (sc[:, None, :2] * z[:, None, :])).sum(-1)
+    return P, scene.rgb.detach().double()[parent].clamp(0, 1), normals.double()[parent]
+
+
+def fused_count_spacing(P: torch.Tensor, n: int, h: float) -> float:
+    """The voxel side, from ``h`` up, at which points P [P, 3] occupy about ``n`` voxels (within 10 %):
+    h grown by ``sqrt(n_h / n)`` (the count falls slower than 1 / h^2 where the points have depth noise)."""
+    for _ in range(4):
+        grow = (voxel_count(P, h) / n) ** 0.5
+        if grow <= 1.05:
+            break
+        h *= grow
+    return h
+
+
 def surface_points(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[GaussianScene, dict]:
     """Stage 2's output scene and its report: the Gaussians :func:`sample_surface` keeps
-    (``mode: filter``), or points back-projected from them (``mode: backproject``; ``spacing`` 0: about
-    as many points as Gaussians kept, never finer than their median spacing h: h grown by
-    ``sqrt(n_h / n)``, n_h the voxels of side h the pixels occupy, until n_h is within 10 % of n)."""
+    (``mode: filter``); points drawn over their footprints (``mode: footprints``,
+    :func:`footprint_samples`, ``oversample`` per Gaussian kept, normals by :func:`outward_normals`); or
+    points back-projected from the Gaussians kept by steps 1-2 (``mode: backproject``). The last two are
+    fused at ``spacing`` (0: about as many points as Gaussians kept, never finer than their median
+    spacing: :func:`fused_count_spacing`)."""
     if cfg.mode == "filter" or not cfg.enabled:
         idx, report = sample_surface(scene, cfg)
         return scene.subset(idx), report
-    idx, report = sample_surface(scene, replace(cfg, visibility=False, max_points=0))  # floaters and haze out
-    kept = scene.subset(idx)
-    P, C, N = backprojected_pixels(kept, cfg.views, cfg.resolution, tol=cfg.depth_tolerance)
+    if cfg.mode == "footprints":
+        idx, report = sample_surface(scene, replace(cfg, max_points=0))
+        kept = scene.subset(idx)
+        normals, _ = outward_normals(kept, cfg.views, min(cfg.resolution, 128), cfg.depth_tolerance)
+        P, C, N = footprint_samples(kept, cfg.oversample * len(kept), normals, cfg.seed)
+    else:
+        idx, report = sample_surface(scene, replace(cfg, visibility=False, max_points=0))  # floaters and haze out
+        kept = scene.subset(idx)
+        P, C, N = backprojected_pixels(kept, cfg.views, cfg.resolution, tol=cfg.depth_tolerance)
     if cfg.spacing > 0:
         from .render import scene_bounds
 
         h = cfg.spacing * scene_bounds(kept)[1]
     else:
         h = float(knn(kept.means, kept.means, 1, exclude_self=True)[0].median()) if len(kept) > 1 else 1.0
-        for _ in range(4):  # the count falls slower than 1 / h^2 where the samples have depth noise
-            grow = (voxel_count(P, h) / len(kept)) ** 0.5
-            if grow <= 1.05:
-                break
-            h *= grow
+        h = fused_count_spacing(P, len(kept), h)
     out = fuse_points(P, C, N, h, scene.dtype)
-    report.update({"mode": "backproject", "spacing": h, "points": len(out), "kept": len(out)})
-    log.info("surface sampling: %d points back-projected from %d Gaussians at spacing %.4g", len(out), len(kept), h)
+    report.update({"mode": cfg.mode, "spacing": h, "points": len(out), "kept": len(out)})
+    log.info("surface sampling (%s): %d points from %d Gaussians at spacing %.4g", cfg.mode, len(out), len(kept), h)
     return out, report
 
 
