@@ -458,6 +458,37 @@ def test_evaluate_names_the_file_of_an_empty_result(tmp_path):
     assert rc == 2 and not (tmp_path / "out.json").exists()
 
 
+def test_cli_reports_bad_input_in_one_line_and_faults_with_their_traceback(tmp_path, caplog, monkeypatch):
+    """Bad input: one line naming the file, exit 2, the traceback only with -v. A fault (a ValueError
+    raised inside numpy, a KeyError): its traceback, whatever the flags."""
+    import numpy as np
+
+    from wast3d import cli
+
+    missing, out = tmp_path / "nothere.ply", tmp_path / "out.ply"
+    assert cli.main(["import-ply", str(missing), str(out)]) == 2
+    rec = [r for r in caplog.records if r.levelname == "ERROR"][-1]
+    assert str(missing) in rec.getMessage() and not rec.exc_info
+    caplog.clear()
+    assert cli.main(["-v", "import-ply", str(missing), str(out)]) == 2
+    assert [r for r in caplog.records if r.levelname == "ERROR"][-1].exc_info
+
+    def fault_numpy(a):
+        np.zeros(3).reshape(2, 2)
+
+    def fault_key(a):
+        return {}["k"]
+
+    fn, help_ = cli.COMMANDS["import-ply"]
+    for fault, exc in ((fault_numpy, ValueError), (fault_key, KeyError)):
+        def deco(sub, fault=fault):
+            fn(sub)  # the subcommand's arguments; its run function replaced by the fault
+            return fault
+        monkeypatch.setitem(cli.COMMANDS, "import-ply", (deco, help_))
+        with pytest.raises(exc):
+            cli.main(["import-ply", str(missing), str(out)])
+
+
 def test_table_row_specs():
     from wast3d.tables import parse_spec
 

@@ -40,7 +40,7 @@ def test_content_scenes(name):
 
 
 def test_unknown_names():
-    with pytest.raises(KeyError, match="unknown procedural style 'moss'"):
+    with pytest.raises(ValueError, match="unknown procedural style 'moss'"):
         make_scene("style", "moss", 100)
-    with pytest.raises(KeyError, match="unknown content mesh 'teapot'"):
+    with pytest.raises(ValueError, match="unknown content mesh 'teapot'"):
         make_scene("content", "teapot", 100)

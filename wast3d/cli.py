@@ -1,7 +1,8 @@
 """The ``wast3d`` command: one subcommand per stage; every Snakemake rule calls one of these.
 
 Each subcommand reads its inputs, calls the library's pure functions and writes its outputs
-atomically. Errors in inputs are reported as one line naming the file and the field (exit code 2).
+atomically. Errors in inputs are reported as one line naming the file and the field (exit code 2;
+with ``-v`` their traceback as well); any other error is a fault and shows its traceback.
 """
 
 from __future__ import annotations
@@ -410,10 +411,26 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return int(args._run(args) or 0)
-    except (PlyError, DatasetError, FileNotFoundError, KeyError, ValueError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        log.error("%s", msg)
+    except (PlyError, DatasetError, FileNotFoundError, ValueError) as e:
+        if not user_error(e):
+            raise
+        log.error("%s", e, exc_info=args.verbose)
         return 2
+
+
+def user_error(e: BaseException) -> bool:
+    """Whether ``e`` reports bad input (one line, exit code 2) rather than a fault (its traceback): a
+    file or dataset error, or a ValueError that this package raised itself (its validation, which names
+    the file and the field). A ValueError from inside numpy, torch or scipy is a fault."""
+    from .datasets import DatasetError
+    from .ply import PlyError
+
+    if isinstance(e, (PlyError, DatasetError, FileNotFoundError)):
+        return True
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and Path(tb.tb_frame.f_code.co_filename).resolve().parent == Path(__file__).resolve().parent
 
 
 if __name__ == "__main__":

@@ -131,15 +131,25 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
         registration_picture(panels, out_png)
 
 
-def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
+def load_registration(path: Path):
+    """The :class:`~wast3d.registration.Registration` in ``path``; errors name the file."""
     from .registration import Registration
+
+    d = load_npz(path)  # names the file when it is missing or unreadable
+    try:
+        return Registration.from_npz(d)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
     from .selection import SelectConfig, select_with
 
     cfg = make_config(SelectConfig, params, "select")
     k = cfg.k
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
-    reg = Registration.from_npz(load_npz(reg_npz))
+    reg = load_registration(reg_npz)
     offsets, indices = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
                                    reg.style_spacing)
     sizes = (offsets[1:] - offsets[:-1]).numpy()
@@ -154,13 +164,12 @@ def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: 
 
 def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, sel_npz: Path,
                 out_ply: Path, out_npz: Path, out_csv: Path, params: dict, progress: bool = True) -> None:
-    from .registration import Registration
     from .stylize import StylizeConfig, stylize
 
     cfg = make_config(StylizeConfig, params, "stylize")
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
-    reg = Registration.from_npz(load_npz(reg_npz))
+    reg = load_registration(reg_npz)
     sel = load_npz(sel_npz, required=("offsets", "indices"))
     if int(sel["indices"].max(initial=0)) >= len(style):
         raise ValueError(f"{sel_npz}: 'indices' point past the style scene's {len(style)} Gaussians")
@@ -246,12 +255,12 @@ def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, par
     """The style's frames at the pixel scale its elements have on renders fitted to the content
     (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
     ``params``: the render block."""
-    from .registration import Registration, relief_length
+    from .registration import relief_length
     from .render import RenderConfig, render_texture_reference
 
     cfg = make_config(RenderConfig, params, "render")
     style = read_ply(style_ply)
-    reg = None if registration is None else Registration.from_npz(load_npz(registration))
+    reg = None if registration is None else load_registration(registration)
     s0, length = None if reg is None else reg.s0, None
     if reg is not None:
         try:  # one relief length of the style, in content units: the coarse Chamfer's smoothing length

@@ -254,7 +254,7 @@ def _spacing(points: np.ndarray, area: float) -> float:
 
 def style_scene(name: str, n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
     if name not in STYLES:
-        raise KeyError(f"unknown procedural style '{name}' (choose from {', '.join(sorted(STYLES))})")
+        raise ValueError(f"unknown procedural style '{name}' (choose from {', '.join(sorted(STYLES))})")
     return STYLES[name](n_gaussians=n_gaussians, seed=seed)
 
 
@@ -274,7 +274,7 @@ def load_mesh(name: str):
         "sphere": lambda: pv.Sphere(radius=1.0, theta_resolution=64, phi_resolution=64),
     }
     if name not in loaders:
-        raise KeyError(f"unknown content mesh '{name}' (choose from {', '.join(CONTENTS)})")
+        raise ValueError(f"unknown content mesh '{name}' (choose from {', '.join(CONTENTS)})")
     mesh = loaders[name]()
     return mesh.extract_surface(algorithm=None).triangulate().clean()
 
