@@ -426,6 +426,12 @@ def test_table1_row_reads_eval_and_benchmarks(tmp_path):
     assert table1_row(r, "c", "s", "e", "p", "ours")["time_s"] is None  # never a partial sum
     df = write_table([row], tmp_path / "t.csv", tmp_path / "t.md")
     assert "not computed" in (tmp_path / "t.md").read_text() and len(df) == 1
+    # a missing or corrupt report is an error naming it, not an empty row
+    (r / "stylize/c__s/e/losses.json").write_text("{not json")
+    with pytest.raises(ValueError, match="losses.json: invalid JSON"):
+        table1_row(r, "c", "s", "e", "p", "ours")
+    with pytest.raises(FileNotFoundError, match="eval/c__s/other.json"):
+        table1_row(r, "c", "s", "other", "p", "ours")
 
 
 def test_metrics_on_degenerate_inputs_are_finite():

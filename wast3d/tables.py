@@ -3,35 +3,31 @@
 
 from __future__ import annotations
 
-import json
+import logging
 from pathlib import Path
 
 import pandas as pd
 
-from .io_utils import atomic_path
+from .io_utils import atomic_path, read_json
 
-
-def _read(path: Path) -> dict:
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
+log = logging.getLogger(__name__)
 
 
 def _bench(path: Path) -> dict:
-    """Snakemake benchmark TSV -> seconds and peak memory (max_rss, MB)."""
+    """Snakemake benchmark TSV -> seconds and peak memory (max_rss, MB); {} with a warning naming the
+    file where there is none (a stage run outside Snakemake): the row's time is then left empty."""
     try:
         df = pd.read_csv(path, sep="\t")
         return {"seconds": float(df["s"].iloc[0]), "max_rss_mb": float(df["max_rss"].iloc[0])}
-    except (OSError, KeyError, ValueError, IndexError, pd.errors.EmptyDataError):
+    except (OSError, KeyError, ValueError, IndexError, pd.errors.EmptyDataError) as e:
+        log.warning("%s: no benchmark (%s); time and memory left empty", path, type(e).__name__)
         return {}
 
 
 def run_row(results: Path, content: str, style: str, experiment: str) -> dict:
     d = Path(results) / "stylize" / f"{content}__{style}" / experiment
-    loss = _read(d / "losses.json")
-    final = _read(d / "final.json")
-    metrics = _read(d / "metrics.json")
+    loss = read_json(d / "losses.json")
+    final = read_json(d / "final.json")
     b = _bench(Path(results) / "benchmarks" / "rules" / f"sinkhorn_{content}__{style}_{experiment}.tsv")
     cfg = loss.get("config", {})
     row = {
@@ -43,7 +39,6 @@ def run_row(results: Path, content: str, style: str, experiment: str) -> dict:
         "stylize_s": b.get("seconds", loss.get("seconds_total")), "stylize_max_rss_mb": b.get("max_rss_mb"),
         "rescale_ratio_median": final.get("ratio_quantiles", {}).get("0.5"),
     }
-    row.update({k: v for k, v in metrics.items() if not isinstance(v, (dict, list))})
     return row
 
 
@@ -105,11 +100,11 @@ def method_benchmarks(results: Path, content: str, style: str, method: str, part
 
 def table1_row(results: Path, content: str, style: str, method: str, partition: str | None, label: str) -> dict:
     """One row of Table 1 from ``results/eval/{content}__{style}/{method}.json`` and benchmark files."""
-    ev = _read(Path(results) / "eval" / f"{content}__{style}" / f"{method}.json")
+    ev = read_json(Path(results) / "eval" / f"{content}__{style}" / f"{method}.json")
     benches = [_bench(p) for p in method_benchmarks(results, content, style, method, partition)]
     # where the method's own stage recorded its device (the unstylized input has no such stage)
     report = "final.json" if method == "colour_ot" else ("losses.json" if partition is not None else None)
-    device = _read(Path(results) / "stylize" / f"{content}__{style}" / method / report).get("device") if report else None
+    device = read_json(Path(results) / "stylize" / f"{content}__{style}" / method / report).get("device") if report else None
     clip = ev.get("clip_similarity")
     row = {"content": content, "style": style, "method": label, "run": method,
            "clip_similarity_pct": clip if clip is not None else "not computed",
