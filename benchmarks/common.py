@@ -113,10 +113,9 @@ class PairRunner:
         t = time.perf_counter()
         off, idx = select_with(SelectConfig(k=k, mode=mode, radius=radius), self.mapped, self.labels,
                                self.style.means.double(), self.reg.style_spacing)
-        out, labs, curves, secs, before = stylize(self.content, self.labels, self.style, self.reg, off, idx,
-                                                  stylize_cfg, progress=False)
-        final, _ = readjust_scales(out, before, labs, 8, bound)
-        return final, time.perf_counter() - t, curves
+        res = stylize(self.content, self.labels, self.style, self.reg, off, idx, stylize_cfg, progress=False)
+        final, _ = readjust_scales(res.scene, res.before_means, res.labels, 8, bound)
+        return final, time.perf_counter() - t, res.curves
 
 
 def render_frames(scene, reference, folder: Path, frames: int = 24, size: int = 256):

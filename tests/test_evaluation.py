@@ -581,7 +581,7 @@ def test_valid_metrics_order_floor_positive_negative(tmp_path):
                                                                            refine_iterations=30))
     off, idx = select_footprint(reg.apply(content.means.double(), labels), labels, style.means.double(), 1.0,
                                 reg.style_spacing)
-    collage = stylize(content, labels, style, reg, off, idx, StylizeConfig(iterations=0), progress=False)[0]
+    collage = stylize(content, labels, style, reg, off, idx, StylizeConfig(iterations=0), progress=False).scene
     cfg = MetricsConfig(relief_centres=1024)
     aniso = lambda sc: wasserstein_1d(anisotropy(sc.scales.double()).log10(),  # noqa: E731
                                       anisotropy(style.scales.double()).log10())

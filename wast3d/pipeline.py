@@ -173,10 +173,11 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
     sel = load_npz(sel_npz, required=("offsets", "indices"))
     if int(sel["indices"].max(initial=0)) >= len(style):
         raise ValueError(f"{sel_npz}: 'indices' point past the style scene's {len(style)} Gaussians")
-    out, labs, curves, secs, before = stylize(content, labels, style, reg, torch.from_numpy(sel["offsets"]),
-                                              torch.from_numpy(sel["indices"]), cfg, progress)
+    res = stylize(content, labels, style, reg, torch.from_numpy(sel["offsets"]), torch.from_numpy(sel["indices"]),
+                  cfg, progress)
+    out, curves, secs = res.scene, res.curves, res.seconds
     write_ply(out_ply, out)
-    save_npz(out_npz, labels=labs.numpy(), before_means=before.numpy())
+    save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy())
     rows = [{"cluster": i, "iteration": j, "loss": v} for i, c in enumerate(curves) for j, v in enumerate(c)]
     with atomic_path(out_csv) as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False)

@@ -324,8 +324,12 @@ def _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d):  # pragma: no 
                                  render_mode="RGB+ED", backgrounds=torch.cat([bg, bg.new_zeros(1)])[None],
                                  eps2d=EPS2D, packed=False, **kw)
     alpha = ra[0, ..., 0]
-    out = {"rgb": rc[0, ..., :3], "alpha": alpha, "depth": rc[0, ..., 3], "means2d": meta["means2d"][0],
-           "visible_ids": torch.arange(len(scene), device=scene.device), "radii": meta["radii"][0]}
+    radii = meta["radii"][0]
+    if radii.dim() == 2:  # gsplat >= 1.5: a radius per image axis
+        radii = radii.max(-1).values
+    ids = (radii > 0).nonzero().squeeze(1)  # as the CPU backends: the Gaussians that reach the image
+    out = {"rgb": rc[0, ..., :3], "alpha": alpha, "depth": rc[0, ..., 3], "means2d": meta["means2d"][0][ids],
+           "visible_ids": ids, "radii": radii[ids]}
     if full_means2d:
         out.update(means2d=meta["means2d"], radii=meta["radii"], width=cam.width, height=cam.height, n_cameras=1)
     return out

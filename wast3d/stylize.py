@@ -351,11 +351,23 @@ def apply_colour_offset(scene: GaussianScene, offset: torch.Tensor) -> GaussianS
     return replace(scene, sh_dc=scene.sh_dc + delta.to(scene.sh_dc) / SH_C0)
 
 
+@dataclass
+class Stylized:
+    """What :func:`stylize` returns. ``scene``: the stylized Gaussians in the content frame [M];
+    ``labels`` [M]: each one's cluster; ``curves``: per cluster solved, its loss per step; ``seconds``:
+    per cluster solved, its time; ``before_means`` [M, 3]: each Gaussian's position before the
+    optimization, mapped back to the content frame (the scale readjustment's reference)."""
+
+    scene: GaussianScene
+    labels: torch.Tensor
+    curves: list[list[float]]
+    seconds: list[float]
+    before_means: torch.Tensor
+
+
 def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, offsets: torch.Tensor,
-            indices: torch.Tensor, cfg: StylizeConfig, progress: bool = True):
-    """Run eq. 9 over all clusters. Returns (stylized scene in the content frame, per-cluster label of
-    each output Gaussian [sum |D_i|], list of per-cluster loss curves, list of seconds, the positions
-    before optimization mapped back to the content frame [sum |D_i|, 3], for the scale readjustment)."""
+            indices: torch.Tensor, cfg: StylizeConfig, progress: bool = True) -> Stylized:
+    """Run eq. 9 over all clusters (:class:`Stylized`)."""
     K = len(offsets) - 1
     cm = content.means.double()
     scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
@@ -392,4 +404,4 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         parts.append(out.transform(rotation=reg.R[i].T.to(out.dtype), translation=reg.t[i].to(out.dtype),
                                    scale=(1.0 / reg.s[i]).to(out.dtype)))
         labs.append(lab)
-    return GaussianScene.concat(parts), torch.cat(labs), curves, secs, torch.cat(before_parts).float()
+    return Stylized(GaussianScene.concat(parts), torch.cat(labs), curves, secs, torch.cat(before_parts).float())
