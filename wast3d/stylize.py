@@ -57,14 +57,8 @@ log = logging.getLogger(__name__)
 FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
 
 
-# the solver settings of eq. 9 unless the config says otherwise. gamma = 0.3 of the cluster radius: at
-# 0.05 the transport is nearly one-to-one and flattens and shuffles the style's elements (the ant x
-# pebbles close-ups show a grey-brown smear with confetti normals); a larger gamma keeps more of the
-# style's relief and less of the content's shape and coverage (benchmarks/style_tradeoff.py: with the
-# footprint selection and the flow, 0.3 is the largest gamma tried that keeps >= 95 % coverage on
-# ant x pebbles); the "scene" reading of the paper's 0.05 gives 0.15-0.35 per cluster on the demo.
-# Potentials converged to 1e-3 eps at every step (3 fixed warm iterations were 19 % off at gamma 0.05
-# and 71 % at 0.01).
+# eq. 9's solver settings unless the config says otherwise: gamma 30 % of the cluster radius (why not the
+# paper's 0.05: docs/method.md, stage 5), potentials converged to 1e-3 eps at every step
 SINKHORN_DEFAULTS = {"blur": 0.3, "tol": 1e-3}
 BLUR_UNITS = ("cluster", "scene")
 MASSES = ("uniform", "area")
