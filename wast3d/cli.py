@@ -57,11 +57,12 @@ def cmd_info(sub):
     sub.add_argument("--json", action="store_true", help="print JSON")
 
     def run(a):
-        from .ply import PlyError, read_ply
+        from .formats import read_scene
+        from .ply import PlyError
 
         try:
-            info = {"file": str(a.ply), "valid": True, **scene_summary(read_ply(a.ply))}
-        except (PlyError, FileNotFoundError) as e:
+            info = {"file": str(a.ply), "valid": True, **scene_summary(read_scene(a.ply))}
+        except (PlyError, FileNotFoundError, ValueError) as e:
             info = {"file": str(a.ply), "valid": False, "error": str(e)}
         if a.json:
             print(json.dumps(info, indent=2))
@@ -165,18 +166,36 @@ def cmd_scene(sub):
     return run
 
 
-@command("import-ply", "validate a trained 3DGS PLY (or point cloud) and write it in the canonical layout")
+@command("import-ply", "validate a trained 3DGS scene (.ply, compressed .ply, point cloud, .splat) and write it "
+                       "as a PLY in the canonical layout")
 def cmd_import(sub):
     sub.add_argument("ply", type=Path)
     sub.add_argument("out", type=Path)
     sub.add_argument("--drop-invalid", action="store_true", help="drop Gaussians with NaN/inf instead of failing")
 
     def run(a):
-        from .ply import read_ply, write_ply
+        from .formats import read_scene
+        from .ply import write_ply
 
-        scene = read_ply(a.ply, drop_invalid=a.drop_invalid)
+        scene = read_scene(a.ply, drop_invalid=a.drop_invalid)
         write_ply(a.out, scene)
         log.info("imported %s -> %s: %d Gaussians, SH degree %d", a.ply, a.out, len(scene), scene.sh_degree)
+        return 0
+
+    return run
+
+
+@command("export", "convert a scene between formats, by the extensions of IN and OUT (.ply, .splat)")
+def cmd_export(sub):
+    sub.add_argument("src", type=Path, metavar="IN")
+    sub.add_argument("out", type=Path, metavar="OUT")
+
+    def run(a):
+        from .formats import read_scene, write_scene
+
+        scene = read_scene(a.src)
+        write_scene(a.out, scene)
+        log.info("exported %s -> %s: %d Gaussians", a.src, a.out, len(scene))
         return 0
 
     return run
@@ -194,9 +213,9 @@ def render_command(name: str, help_: str, fn: str, views: int, size: int, out_he
 
         def run(a):
             from . import render
-            from .ply import read_ply
+            from .formats import read_scene
 
-            getattr(render, fn)(read_ply(a.ply), a.out, a.views, a.size)
+            getattr(render, fn)(read_scene(a.ply), a.out, a.views, a.size)
             return 0
 
         return run

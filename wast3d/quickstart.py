@@ -23,7 +23,8 @@ TABLE1_METHODS = {
 
 
 def scene_entry(path: Path) -> dict:
-    """A ``scenes`` entry for a PLY (any layout read_ply accepts) or a Blender folder of posed images."""
+    """A ``scenes`` entry for a scene file (any format :func:`~wast3d.formats.read_scene` reads) or a
+    Blender folder of posed images."""
     path = Path(path).resolve()
     if path.is_dir():
         if not (path / "transforms_train.json").exists():
@@ -31,9 +32,11 @@ def scene_entry(path: Path) -> dict:
         return {"source": "images", "path": str(path)}
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
-    if path.suffix.lower() != ".ply":
-        raise ValueError(f"{path}: expected a .ply file or a folder with transforms_train.json")
-    return {"source": "ply", "path": str(path)}
+    from .formats import FORMATS
+
+    if path.suffix.lower() not in FORMATS:
+        raise ValueError(f"{path}: expected a scene file ({', '.join(FORMATS)}) or a folder with transforms_train.json")
+    return {"source": "ply", "path": str(path)}  # any scene file: the import_ply rule reads them all
 
 
 GENERIC = {"scene", "point_cloud", "splat", "final", "stylized"}

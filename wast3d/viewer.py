@@ -52,9 +52,9 @@ def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaus
     """
     import viser
 
-    from .ply import read_ply
+    from .formats import read_scene
 
-    scenes = {f"{i}: {Path(p).name}": read_ply(p) for i, p in enumerate(paths)}
+    scenes = {f"{i}: {Path(p).name}": read_scene(p) for i, p in enumerate(paths)}
     server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("+z")
     server.initial_camera.look_at = (0.0, 0.0, 0.0)

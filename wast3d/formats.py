@@ -1,0 +1,98 @@
+"""Scene files by extension: ``.ply`` (the reference 3DGS layout, SuperSplat's compressed layout, a
+point cloud; :mod:`wast3d.ply`) and ``.splat``, the format of the common web viewers
+(antimatter15/splat and those that followed it).
+
+``.splat``: no header; 32 bytes per Gaussian, little-endian::
+
+    x y z            float32 x 3   position
+    s_0 s_1 s_2      float32 x 3   activated scales (exp of the PLY's log-scales)
+    r g b a          uint8 x 4     DC colour 0.5 + C0 f_dc, and opacity sigmoid(logit), times 255
+    q_w q_x q_y q_z  uint8 x 4     unit quaternion, q * 128 + 128
+
+It keeps the view-independent colour only: a scene with SH degree > 0 is written at degree 0 (the
+log says so), colours and opacities are quantized to 1/255 (colours clamped to [0, 1]) and rotations
+to 1/128. Element labels are not kept.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .gaussians import GaussianScene
+from .io_utils import atomic_path
+from .ply import PlyError, read_ply, write_ply
+
+log = logging.getLogger(__name__)
+
+SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+FORMATS = (".ply", ".splat")
+
+
+def _format(path: Path) -> str:
+    ext = path.suffix.lower()
+    if ext not in FORMATS:
+        raise ValueError(f"{path}: unknown scene format '{ext}' (known: {', '.join(FORMATS)})")
+    return ext
+
+
+def read_scene(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
+    """The scene in ``path``, by its extension (module docstring)."""
+    path = Path(path)
+    return read_splat(path) if _format(path) == ".splat" else read_ply(path, drop_invalid=drop_invalid)
+
+
+def write_scene(path: str | Path, scene: GaussianScene) -> None:
+    """Write ``scene`` to ``path`` in the format its extension names, atomically."""
+    path = Path(path)
+    if _format(path) == ".splat":
+        write_splat(path, scene)
+    else:
+        write_ply(path, scene)
+
+
+def write_splat(path: str | Path, scene: GaussianScene) -> None:
+    """``scene`` as a ``.splat`` file (module docstring), atomically."""
+    s = scene.detach().to(device="cpu", dtype=torch.float32)
+    if s.sh_degree > 0:
+        log.warning("%s: .splat keeps the DC colour only; SH degree %d dropped", path, s.sh_degree)
+    rec = np.empty(len(s), dtype=SPLAT_DTYPE)
+    rec["position"] = s.means.numpy()
+    rec["scale"] = s.scales.numpy()
+    rgba = torch.cat([s.rgb.clamp(0, 1), s.opacities[:, None]], 1)
+    rec["rgba"] = (rgba * 255).round().clamp(0, 255).to(torch.uint8).numpy()
+    q = s.quats / s.quats.norm(dim=1, keepdim=True)
+    rec["rot"] = (q * 128 + 128).round().clamp(0, 255).to(torch.uint8).numpy()
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(rec.tobytes())
+
+
+def read_splat(path: str | Path) -> GaussianScene:
+    """A ``.splat`` file (module docstring); :class:`~wast3d.ply.PlyError` naming the file and the
+    field for a size that is no multiple of 32 bytes, NaN/inf, a scale <= 0 or a zero quaternion."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: file not found")
+    raw = path.read_bytes()
+    if len(raw) == 0 or len(raw) % SPLAT_DTYPE.itemsize:
+        raise PlyError(f"{path}: .splat: {len(raw)} bytes is not a whole number of {SPLAT_DTYPE.itemsize}-byte "
+                       "Gaussians (truncated?)")
+    rec = np.frombuffer(raw, dtype=SPLAT_DTYPE)
+    for field in ("position", "scale"):
+        bad = ~np.isfinite(rec[field]).all(1)
+        if bad.any():
+            raise PlyError(f"{path}: .splat field '{field}': {int(bad.sum())} Gaussians with NaN/inf "
+                           f"(first {int(np.argmax(bad))})")
+    if (rec["scale"] <= 0).any():
+        raise PlyError(f"{path}: .splat field 'scale': {int((rec['scale'] <= 0).any(1).sum())} Gaussians with a scale <= 0")
+    q = (rec["rot"].astype(np.float32) - 128) / 128
+    if (np.abs(q).sum(1) == 0).any():
+        raise PlyError(f"{path}: .splat field 'rot': {int((np.abs(q).sum(1) == 0).sum())} zero quaternions")
+    rgba = rec["rgba"].astype(np.float32) / 255
+    eps = 0.5 / 255  # alpha 0 or 255 has no finite logit
+    return GaussianScene.from_activated(torch.from_numpy(rec["position"].copy()), torch.from_numpy(rec["scale"].copy()),
+                                        torch.from_numpy(q), opacities=torch.from_numpy(rgba[:, 3].clip(eps, 1 - eps)),
+                                        rgb=torch.from_numpy(rgba[:, :3]))
