@@ -185,7 +185,7 @@ def cmd_import(sub):
     return run
 
 
-@command("export", "convert a scene between formats, by the extensions of IN and OUT (.ply, .splat)")
+@command("export", "convert a scene between formats, by the extensions of IN and OUT (.ply, .compressed.ply, .splat)")
 def cmd_export(sub):
     sub.add_argument("src", type=Path, metavar="IN")
     sub.add_argument("out", type=Path, metavar="OUT")

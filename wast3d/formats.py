@@ -1,5 +1,6 @@
 """Scene files by extension: ``.ply`` (the reference 3DGS layout, SuperSplat's compressed layout, a
-point cloud; :mod:`wast3d.ply`) and ``.splat``, the format of the common web viewers
+point cloud; :mod:`wast3d.ply`), written in the reference layout, or in the compressed one when the
+name ends in ``.compressed.ply``; and ``.splat``, the format of the common web viewers
 (antimatter15/splat and those that followed it).
 
 ``.splat``: no header; 32 bytes per Gaussian, little-endian::
@@ -24,7 +25,7 @@ import torch
 
 from .gaussians import GaussianScene
 from .io_utils import atomic_path
-from .ply import PlyError, read_ply, write_ply
+from .ply import PlyError, read_ply, write_compressed_ply, write_ply
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,8 @@ def write_scene(path: str | Path, scene: GaussianScene) -> None:
     path = Path(path)
     if _format(path) == ".splat":
         write_splat(path, scene)
+    elif path.name.lower().endswith(".compressed.ply"):
+        write_compressed_ply(path, scene)
     else:
         write_ply(path, scene)
 

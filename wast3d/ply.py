@@ -12,8 +12,8 @@ A labelled scene (``GaussianScene.element``) gets one more property, ``element``
 other readers skip it as they skip any extra property, and a scene without labels is written bit for
 bit in the reference layout.
 
-Also read (never written): the PlayCanvas/SuperSplat compressed layout, detected from the header
-(an element ``chunk`` and packed vertices; :mod:`wast3d.ply_compressed`).
+Also read, detected from the header (an element ``chunk`` and packed vertices), and written by
+:func:`write_compressed_ply`: the PlayCanvas/SuperSplat compressed layout (:mod:`wast3d.ply_compressed`).
 
 A plain point cloud (``x y z`` and optionally ``red green blue``) is read as initial Gaussians with the
 reference initialization: isotropic scale = RMS distance to the 3 nearest neighbours, identity
@@ -31,7 +31,7 @@ from plyfile import PlyData, PlyElement
 
 from .gaussians import GaussianScene, num_sh_rest, rgb_to_sh_dc, sh_degree_from_rest
 from .io_utils import atomic_path
-from .ply_compressed import decode, is_compressed
+from .ply_compressed import decode, encode, is_compressed
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,18 @@ def write_ply(path: str | Path, scene: GaussianScene) -> None:
         rec[ELEMENT] = scene.element.detach().cpu().numpy().astype(np.int32)
     with atomic_path(path) as tmp:
         PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<").write(str(tmp))
+
+
+def write_compressed_ply(path: str | Path, scene: GaussianScene) -> None:
+    """Write ``scene`` in SuperSplat's compressed layout (with colour ranges, SH rest as the ``sh``
+    element), atomically. Quantized: positions and log-scales to 11-10-11 bits of each 256-Gaussian
+    chunk's range, rotations to 10 bits per component, colour and opacity to 8 bits, SH rest to 8 bits
+    of [-4, 4]; element labels are not kept."""
+    s = scene.detach().to(device="cpu", dtype=torch.float32)
+    rec = encode(s.means.numpy(), s.log_scales.numpy(), s.quats.numpy(), s.opacity_logits.numpy(), s.sh_dc.numpy(),
+                 s.sh_rest.numpy())
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(r, name) for name, r in rec.items()], text=False, byte_order="<").write(str(tmp))
 
 
 def _read_vertex(path: Path):
@@ -221,5 +233,5 @@ def init_from_points(xyz: torch.Tensor, rgb: torch.Tensor | None = None, opacity
     return GaussianScene.from_activated(xyz.float(), scales.float(), opacities=opacity, rgb=rgb.float().clamp(0, 1))
 
 
-__all__ = ["PlyError", "read_ply", "write_ply", "init_from_points", "property_names", "is_gaussian_ply",
+__all__ = ["PlyError", "read_ply", "write_ply", "write_compressed_ply", "init_from_points", "property_names", "is_gaussian_ply",
            "rgb_to_sh_dc"]

@@ -1,4 +1,5 @@
-"""The PlayCanvas / SuperSplat compressed PLY layout (read only), decoded to the reference parameters.
+"""The PlayCanvas / SuperSplat compressed PLY layout, decoded to the reference parameters and encoded
+from them (:func:`encode`, with colour ranges and the ``sh`` element when the scene has SH rest).
 
 Layout (detected from the header: an element ``chunk`` and a ``vertex`` element of packed ``uint``):
 
@@ -31,6 +32,7 @@ import math
 import numpy as np
 
 from .gaussians import rgb_to_sh_dc
+from .sh import SH_C0
 
 CHUNK = 256
 CHUNK_BOUNDS = ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
@@ -132,3 +134,65 @@ def decode(ply) -> dict[str, np.ndarray]:
         "opacity_logits": f32(opacity), "sh_dc": f32(rgb_to_sh_dc(rgb)), "sh_rest": f32(sh_rest),
         "info": {"chunks": chunk.count, "colour_ranges": colour_ranges, "sh_rest": sh_rest.shape[1]},
     }
+
+
+def pack_unorm(x: np.ndarray, bits: int) -> np.ndarray:
+    """Values in [0, 1] -> nearest of the 2^bits levels (uint32), the inverse of :func:`unpack_unorm`."""
+    t = (1 << bits) - 1
+    return np.clip(np.floor(x * t + 0.5), 0, t).astype(np.uint32)
+
+
+def pack_111011(u: np.ndarray) -> np.ndarray:
+    """[N, 3] in [0, 1] -> [N] uint32 (11, 10, 11 bits)."""
+    return pack_unorm(u[:, 0], 11) << np.uint32(21) | pack_unorm(u[:, 1], 10) << np.uint32(11) | pack_unorm(u[:, 2], 11)
+
+
+def pack_rotation(q: np.ndarray) -> np.ndarray:
+    """[N, 4] quaternions (w, x, y, z) -> [N] uint32 "smallest three" (:func:`unpack_rotation`)."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    big = np.abs(q).argmax(1)
+    q = q * np.sign(q[np.arange(len(q)), big])[:, None]
+    word = big.astype(np.uint32)
+    for j in range(3):  # the other three components, in order
+        idx = np.where(np.arange(3)[None, :] >= big[:, None], np.arange(1, 4)[None, :], np.arange(3)[None, :])[:, j]
+        word = word << np.uint32(10) | pack_unorm(q[np.arange(len(q)), idx] / math.sqrt(2.0) + 0.5, 10)
+    return word
+
+
+def encode(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, opacity_logits: np.ndarray,
+           sh_dc: np.ndarray, sh_rest: np.ndarray) -> dict[str, np.ndarray]:
+    """The reference parameters (float arrays [N, 3], [N, 3], [N, 4], [N], [N, 3], [N, K, 3]) -> the
+    records of the ``chunk``, ``vertex`` and (K > 0) ``sh`` elements (the module docstring's layout,
+    with colour ranges). Each chunk's bounds are its Gaussians' own minima and maxima."""
+    n = len(means)
+    if n == 0:
+        raise ValueError("compressed PLY: no Gaussians to encode")
+    nch = math.ceil(n / CHUNK)
+    ci = np.arange(n) // CHUNK
+    rgb = 0.5 + SH_C0 * sh_dc.astype(np.float64)
+    chunk = np.zeros(nch, dtype=[(k, "<f4") for k in CHUNK_BOUNDS + CHUNK_COLOUR])
+    unit = []
+    for a, lo_names, hi_names in ((means, CHUNK_BOUNDS[0:3], CHUNK_BOUNDS[3:6]), (log_scales, CHUNK_BOUNDS[6:9], CHUNK_BOUNDS[9:12]),
+                                  (rgb, CHUNK_COLOUR[0:3], CHUNK_COLOUR[3:6])):
+        a = a.astype(np.float64)
+        lo = np.stack([np.minimum.reduceat(a[:, j], np.arange(0, n, CHUNK)) for j in range(3)], 1)
+        hi = np.stack([np.maximum.reduceat(a[:, j], np.arange(0, n, CHUNK)) for j in range(3)], 1)
+        for j in range(3):
+            chunk[lo_names[j]], chunk[hi_names[j]] = lo[:, j], hi[:, j]
+        lo, hi = lo.astype(np.float32).astype(np.float64)[ci], hi.astype(np.float32).astype(np.float64)[ci]
+        unit.append(np.clip((a - lo) / np.where(hi > lo, hi - lo, 1.0), 0, 1))
+    opacity = 1 / (1 + np.exp(-opacity_logits.astype(np.float64)))
+    vertex = np.empty(n, dtype=[(k, "<u4") for k in PACKED])
+    vertex["packed_position"] = pack_111011(unit[0])
+    vertex["packed_rotation"] = pack_rotation(quats.astype(np.float64))
+    vertex["packed_scale"] = pack_111011(unit[1])
+    vertex["packed_color"] = (pack_unorm(unit[2][:, 0], 8) << np.uint32(24) | pack_unorm(unit[2][:, 1], 8) << np.uint32(16)
+                              | pack_unorm(unit[2][:, 2], 8) << np.uint32(8) | pack_unorm(opacity, 8))
+    out = {"chunk": chunk, "vertex": vertex}
+    if sh_rest.shape[1]:
+        rest = sh_rest.astype(np.float64).transpose(0, 2, 1).reshape(n, -1)  # channel-major
+        sh = np.empty(n, dtype=[(f"f_rest_{i}", "u1") for i in range(rest.shape[1])])
+        for i in range(rest.shape[1]):
+            sh[f"f_rest_{i}"] = pack_unorm((rest[:, i] + 4) / 8, 8)
+        out["sh"] = sh
+    return out
