@@ -15,8 +15,10 @@ The paper's regularizers, on the activated scales s = exp(log_scales) of each Ga
 
 - eq. 1, anisotropy: ``L_aniso = mean_i( max(max(s_i) / min(s_i), r) - r )``;
 - eq. 2, uniform scale: ``L_unif = mean_i || s_i - (s_hat, s_hat, s_hat) ||^2``, with ``target_scale``
-  s_hat given, or (0) the median of all scales at that step, detached: a pull towards one common size
-  that does not fix its level;
+  s_hat given; else ``target_pixels`` times the training views' pixel footprint at the point they look
+  at (the median over views of its distance over the focal length: the finest size the images
+  resolve); else (both 0) the median of all scales at that step, detached, a pull towards one common
+  size that does not fix its level;
 - weights ``aniso_weight`` / ``unif_weight``; on for style scenes and off for content scenes by default
   (the paper regularizes style scenes);
 - ours, not the paper's: binary opacity ``L_opa = mean_i o_i (1 - o_i)`` (weight ``opacity_weight``,
@@ -83,7 +85,8 @@ class PretrainConfig:
     aniso_ratio: float = 3.0
     unif_weight: float = 0.1
     opacity_weight: float = 0.1  # binary opacity (with regularize; from refine_stop on); 0: off
-    target_scale: float = 0.0
+    target_scale: float = 0.0  # eq. 2's s_hat; 0: from target_pixels
+    target_pixels: float = 0.0  # s_hat in pixel footprints of the training views; 0 (and target_scale 0): the median scale
     checkpoint_every: int = 1000
     eval_every: int = 0  # 0: only at the end
     seed: int = 0
@@ -181,6 +184,13 @@ def look_at_centre(ds: Dataset) -> torch.Tensor:
     return torch.linalg.lstsq(A, b[:, None]).solution[:, 0].float()
 
 
+def pixel_footprint(ds: Dataset, centre: torch.Tensor) -> float:
+    """The length one pixel covers at ``centre`` [3]: the median over the training views of its
+    distance from the camera over the focal length (pixels)."""
+    d = [float((v.camera.center - centre).norm()) / v.camera.fx for v in ds.train]
+    return float(np.median(d)) if d else 0.0
+
+
 # ---- training ----------------------------------------------------------------------------------
 
 
@@ -195,6 +205,9 @@ class Trainer:
         cam_centre, cam_radius = ds.scene_center_radius()
         self.scene_scale = cam_radius
         self.centre = look_at_centre(ds)
+        self.target_scale = cfg.target_scale or cfg.target_pixels * pixel_footprint(ds, self.centre)
+        if cfg.regularize:
+            log.info("pretrain: eq. 2's target scale %s", f"{self.target_scale:.4g}" if self.target_scale else "the median scale")
         if init is None:
             dist = float((torch.stack([v.camera.center for v in ds.all_views]) - self.centre).norm(dim=1).mean())
             ext = cfg.init_extent or 0.35 * dist
@@ -268,7 +281,7 @@ class Trainer:
         terms = {"l1": l1.item(), "ssim": s.item()}
         if cfg.regularize:
             la = aniso_loss(self.params["scales"], cfg.aniso_ratio)
-            lu = unif_loss(self.params["scales"], cfg.target_scale)
+            lu = unif_loss(self.params["scales"], self.target_scale)
             loss = loss + cfg.aniso_weight * la + cfg.unif_weight * lu
             terms.update(aniso=la.item(), unif=lu.item())
             if cfg.opacity_weight > 0 and self.step >= self.refine_stop:
