@@ -83,10 +83,10 @@ class PretrainConfig:
     regularize: bool = False
     aniso_weight: float = 0.1
     aniso_ratio: float = 3.0
-    unif_weight: float = 0.1
+    unif_weight: float = 100.0  # eq. 2 is mean ||s - s_hat||^2 in scene units: at 0.1 it moved nothing
     opacity_weight: float = 0.1  # binary opacity (with regularize; from refine_stop on); 0: off
     target_scale: float = 0.0  # eq. 2's s_hat; 0: from target_pixels
-    target_pixels: float = 0.0  # s_hat in pixel footprints of the training views; 0 (and target_scale 0): the median scale
+    target_pixels: float = 0.7  # s_hat in pixel footprints of the training views; 0 (and target_scale 0): the median scale
     checkpoint_every: int = 1000
     eval_every: int = 0  # 0: only at the end
     seed: int = 0
