@@ -91,12 +91,18 @@ def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: 
         clusters_picture(content.means.numpy(), labels, out_png, f"{info['clusters']} clusters")
 
 
+def _clusters(path: Path, n: int) -> dict[str, np.ndarray]:
+    """The clusters file of a content scene of ``n`` Gaussians, its per-point arrays checked against n."""
+    d = load_npz(path, required=("labels",))
+    for key, shape in (("labels", (n,)), ("normals", (n, 3))):
+        if key in d and d[key].shape != shape:
+            raise ValueError(f"{path}: '{key}' has shape {d[key].shape} but the content scene has {n} Gaussians "
+                             f"(expected {shape}; the clusters were made for another content scene)")
+    return d
+
+
 def _labels(path: Path, n: int) -> torch.Tensor:
-    lab = load_npz(path, required=("labels",))["labels"]
-    if len(lab) != n:
-        raise ValueError(f"{path}: 'labels' has {len(lab)} entries but the content scene has {n} Gaussians "
-                         "(the clusters were made for another content scene)")
-    return torch.from_numpy(lab).long()
+    return torch.from_numpy(_clusters(path, n)["labels"]).long()
 
 
 def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz: Path, out_png: Path | None,
@@ -105,11 +111,8 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
 
     cfg = make_config(RegistrationConfig, params, "register")
     content, style = read_ply(content_ply), read_ply(style_ply)
-    labels = _labels(clusters_npz, len(content))
-    normals = load_npz(clusters_npz).get("normals")
-    if normals is not None and normals.shape != (len(content), 3):
-        raise ValueError(f"{clusters_npz}: 'normals' has shape {normals.shape}, expected ({len(content)}, 3) "
-                         "(the clusters were made for another content scene)")
+    cl = _clusters(clusters_npz, len(content))
+    labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
     reg = register(content.means, labels, style.means, cfg,
                    normals=None if normals is None else torch.from_numpy(normals))
     save_npz(out_npz, **reg.to_npz())

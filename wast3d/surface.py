@@ -333,17 +333,22 @@ def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
     return P[keep], C[keep], N[keep]
 
 
+def _voxel_index(points: torch.Tensor, spacing: float) -> tuple[torch.Tensor, int]:
+    """Each point's voxel [P] among the V voxels of side ``spacing`` the points [P, 3] occupy, and V."""
+    key = torch.floor((points - points.min(0).values) / spacing).long()
+    _, inv = torch.unique(key, dim=0, return_inverse=True)
+    return inv, int(inv.max()) + 1
+
+
 def voxel_count(points: torch.Tensor, spacing: float) -> int:
     """How many voxels of side ``spacing`` the points [P, 3] occupy."""
-    return len(torch.unique(torch.floor((points - points.min(0).values) / spacing).long(), dim=0))
+    return _voxel_index(points, spacing)[1]
 
 
 def voxel_means(P: torch.Tensor, spacing: float, *values: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """The mean of the points P [P, 3] in each voxel of side ``spacing`` they occupy [V, 3], and the
     mean of each of ``values`` ([P, D] each) over the same voxels (float64)."""
-    key = torch.floor((P - P.min(0).values) / spacing).long()
-    _, inv = torch.unique(key, dim=0, return_inverse=True)
-    n = int(inv.max()) + 1
+    inv, n = _voxel_index(P, spacing)
     count = torch.bincount(inv, minlength=n).double()[:, None]
     return tuple(torch.zeros(n, x.shape[1], dtype=torch.float64).index_add_(0, inv, x.double()) / count
                  for x in (P, *values))
