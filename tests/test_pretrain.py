@@ -37,6 +37,18 @@ def test_unif_loss_value_and_gradient():
     assert float(unif_loss(s.log(), 0.0)) == pytest.approx(0.5)
 
 
+def test_unif_loss_cap_counts_only_the_excess():
+    """unif_cap: a thin axis (0.25 under a target of 1) costs nothing and gets no gradient; an axis of
+    2 costs (2 - 1)^2 as in the two-sided eq. 2, whose thin axis costs (0.25 - 1)^2 more."""
+    s = torch.tensor([[2.0, 0.25, 1.0]], dtype=torch.float64)
+    ls = s.log().requires_grad_(True)
+    v = unif_loss(ls, 1.0, cap=True)
+    assert v.item() == pytest.approx(1.0)
+    v.backward()
+    assert torch.allclose(ls.grad, torch.tensor([[4.0, 0, 0]], dtype=torch.float64))
+    assert unif_loss(s.log(), 1.0).item() == pytest.approx(1.0 + 0.75**2)
+
+
 def test_ssim_identity_and_drop():
     a = torch.rand(20, 24, 3)
     assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-5)

@@ -18,7 +18,9 @@ The paper's regularizers, on the activated scales s = exp(log_scales) of each Ga
   s_hat given; else ``target_pixels`` times the training views' pixel footprint at the point they look
   at (the median over views of its distance over the focal length: the finest size the images
   resolve); else (both 0) the median of all scales at that step, detached, a pull towards one common
-  size that does not fix its level;
+  size that does not fix its level; with ``unif_cap`` (ours) only the excess above s_hat counts,
+  ``mean_i || max(s_i - s_hat, 0) ||^2``: a cap on size that leaves thin axes (a blade's width, a
+  pebble's thickness) to the images, where the two-sided pull thickens them to s_hat;
 - weights ``aniso_weight`` / ``unif_weight``; on for style scenes and off for content scenes by default
   (the paper regularizes style scenes);
 - ours, not the paper's: binary opacity ``L_opa = mean_i o_i (1 - o_i)`` (weight ``opacity_weight``,
@@ -87,6 +89,7 @@ class PretrainConfig:
     opacity_weight: float = 0.1  # binary opacity (with regularize; from refine_stop on); 0: off
     target_scale: float = 0.0  # eq. 2's s_hat; 0: from target_pixels
     target_pixels: float = 0.7  # s_hat in pixel footprints of the training views; 0 (and target_scale 0): the median scale
+    unif_cap: bool = False  # eq. 2 one-sided: only scales above s_hat are pulled down
     checkpoint_every: int = 1000
     eval_every: int = 0  # 0: only at the end
     seed: int = 0
@@ -128,11 +131,14 @@ def aniso_loss(log_scales: torch.Tensor, r: float) -> torch.Tensor:
     return (ratio.clamp_min(r) - r).mean()
 
 
-def unif_loss(log_scales: torch.Tensor, target: float = 0.0) -> torch.Tensor:
-    """Eq. 2: mean of ||s - (t, t, t)||^2; t = median of all scales (detached) when target is 0."""
+def unif_loss(log_scales: torch.Tensor, target: float = 0.0, cap: bool = False) -> torch.Tensor:
+    """Eq. 2: mean of ||s - (t, t, t)||^2; t = median of all scales (detached) when target is 0.
+
+    log_scales: [N, 3]. ``cap``: only the excess counts, ``mean ||max(s - t, 0)||^2`` (a size cap)."""
     s = log_scales.exp()
     t = s.detach().median() if target <= 0 else torch.as_tensor(target, dtype=s.dtype)
-    return ((s - t) ** 2).sum(1).mean()
+    d = (s - t).clamp_min(0) if cap else s - t
+    return (d**2).sum(1).mean()
 
 
 # ---- parameters ----------------------------------------------------------------------------------
@@ -281,7 +287,7 @@ class Trainer:
         terms = {"l1": l1.item(), "ssim": s.item()}
         if cfg.regularize:
             la = aniso_loss(self.params["scales"], cfg.aniso_ratio)
-            lu = unif_loss(self.params["scales"], self.target_scale)
+            lu = unif_loss(self.params["scales"], self.target_scale, cfg.unif_cap)
             loss = loss + cfg.aniso_weight * la + cfg.unif_weight * lu
             terms.update(aniso=la.item(), unif=lu.item())
             if cfg.opacity_weight > 0 and self.step >= self.refine_stop:
