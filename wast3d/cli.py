@@ -166,7 +166,7 @@ def cmd_scene(sub):
     return run
 
 
-@command("import-ply", "validate a trained 3DGS scene (.ply, compressed .ply, point cloud, .splat) and write it "
+@command("import-ply", "validate a trained 3DGS scene (.ply, compressed .ply, point cloud, .spz, .splat) and write it "
                        "as a PLY in the canonical layout")
 def cmd_import(sub):
     sub.add_argument("ply", type=Path)
@@ -185,7 +185,7 @@ def cmd_import(sub):
     return run
 
 
-@command("export", "convert a scene between formats, by the extensions of IN and OUT (.ply, .compressed.ply, .splat)")
+@command("export", "convert a scene between formats, by the extensions of IN and OUT (.ply, .compressed.ply, .spz, .splat)")
 def cmd_export(sub):
     sub.add_argument("src", type=Path, metavar="IN")
     sub.add_argument("out", type=Path, metavar="OUT")

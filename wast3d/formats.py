@@ -1,7 +1,7 @@
 """Scene files by extension: ``.ply`` (the reference 3DGS layout, SuperSplat's compressed layout, a
 point cloud; :mod:`wast3d.ply`), written in the reference layout, or in the compressed one when the
-name ends in ``.compressed.ply``; and ``.splat``, the format of the common web viewers
-(antimatter15/splat and those that followed it).
+name ends in ``.compressed.ply``; ``.spz``, Niantic's SPZ (:mod:`wast3d.spz`, version 4 written);
+and ``.splat``, the format of the common web viewers (antimatter15/splat and those that followed it).
 
 ``.splat``: no header; 32 bytes per Gaussian, little-endian::
 
@@ -30,7 +30,7 @@ from .ply import PlyError, read_ply, write_compressed_ply, write_ply
 log = logging.getLogger(__name__)
 
 SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
-FORMATS = (".ply", ".splat")
+FORMATS = (".ply", ".spz", ".splat")
 
 
 def _format(path: Path) -> str:
@@ -42,15 +42,25 @@ def _format(path: Path) -> str:
 
 def read_scene(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     """The scene in ``path``, by its extension (module docstring)."""
+    from .spz import read_spz
+
     path = Path(path)
-    return read_splat(path) if _format(path) == ".splat" else read_ply(path, drop_invalid=drop_invalid)
+    ext = _format(path)
+    if ext == ".splat":
+        return read_splat(path)
+    return read_spz(path) if ext == ".spz" else read_ply(path, drop_invalid=drop_invalid)
 
 
 def write_scene(path: str | Path, scene: GaussianScene) -> None:
     """Write ``scene`` to ``path`` in the format its extension names, atomically."""
+    from .spz import write_spz
+
     path = Path(path)
-    if _format(path) == ".splat":
+    ext = _format(path)
+    if ext == ".splat":
         write_splat(path, scene)
+    elif ext == ".spz":
+        write_spz(path, scene)
     elif path.name.lower().endswith(".compressed.ply"):
         write_compressed_ply(path, scene)
     else:
