@@ -390,6 +390,19 @@ def test_relief_length_follows_element_size_not_gaussian_count():
         relief_length(flat)
 
 
+def test_relief_length_ignores_the_patch_bend():
+    """A patch of pebbles bent into a bowl (a trained patch's top sags or bulges by a few percent of
+    its width) has the pebbles' relief length, not one of the bend's size."""
+    from wast3d.procedural import style_scene
+
+    a = style_scene("pebbles", 30000).means
+    L = relief_length(a)
+    for bend in (0.05, -0.1):
+        b = a.clone()
+        b[:, 2] += bend * (b[:, 0] ** 2 + b[:, 1] ** 2)
+        assert abs(relief_length(b) / L - 1) < 0.15, bend
+
+
 def test_base_scale_rules():
     from wast3d.procedural import content_scene, style_scene
 
@@ -399,7 +412,7 @@ def test_base_scale_rules():
     assert how["rule"] == "element_scale"
     # one relief length of the style covers element_scale of the content's diameter
     assert abs(how["relief_length"] / s0 / how["content_diameter"] - RegistrationConfig().element_scale) < 1e-9
-    s1, _ = base_scale(c, st, RegistrationConfig(element_scale=0.14))
+    s1, _ = base_scale(c, st, RegistrationConfig(element_scale=2 * RegistrationConfig().element_scale))
     assert abs(s1 / s0 - 0.5) < 1e-9  # elements twice as large on the content
     assert base_scale(c, st, RegistrationConfig(scale=3.0))[0] == 3.0
     assert base_scale(c, st, RegistrationConfig(element_scale=0))[1]["rule"].startswith("density")
