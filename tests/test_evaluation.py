@@ -529,7 +529,7 @@ def test_texture_swd_zero_for_identical_sees_a_flat_image_and_ignores_silhouette
     rough = opaque(torch.rand(4, 48, 48, 3, generator=g))
     rough2 = opaque(torch.rand(4, 48, 48, 3, generator=g))
     flat = opaque(torch.full((4, 48, 48, 3), 0.3) + 0.01 * torch.rand(4, 48, 48, 3, generator=g))
-    cfg = TextureConfig(windows=256, directions=32)
+    cfg = TextureConfig(windows=256, directions=32, min_windows=1)
     assert texture_swd(rough, rough, cfg) == 0
     assert 5 * texture_swd(rough2, rough, cfg) < texture_swd(flat, rough, cfg)
     # the same flat surface as a disc on the white background: its outline is no texture
@@ -542,10 +542,29 @@ def test_texture_swd_zero_for_identical_sees_a_flat_image_and_ignores_silhouette
     # a scattered result: no window inside the foreground -> a clear error naming the level
     dots = rough.clone()
     dots[..., 3] = ((yy % 4 == 0) & (xx % 4 == 0)).float()
-    with pytest.raises(ValueError, match="result frames have no 5x5 window.*level 0"):
+    with pytest.raises(ValueError, match="no pyramid level has 1 distinct 5x5 windows.*level 0: result 0"):
         texture_swd(dots, rough, cfg)
     with pytest.raises(ValueError, match="min_alpha"):
         TextureConfig(min_alpha=0.0)
+
+
+def test_texture_swd_leaves_out_a_level_with_too_few_reference_windows():
+    """A reference whose foreground holds a few windows at level 1 (a small patch with soft edges): that
+    level would compare against one window drawn again and again; it is left out and said so, and the
+    score is level 0's alone."""
+    from wast3d.image_metrics import TextureConfig, texture_levels
+
+    g = torch.Generator().manual_seed(1)
+    frames = torch.cat([torch.rand(4, 64, 64, 3, generator=g), torch.ones(4, 64, 64, 1)], -1)
+    ref = torch.cat([torch.rand(4, 64, 64, 3, generator=g), torch.zeros(4, 64, 64, 1)], -1)
+    ref[:, 20:38, 20:38, 3] = 1.0  # 18 px: 100 windows a frame at level 0, 1 at level 1
+    out = texture_levels(frames, ref, TextureConfig(windows=256, directions=32, min_windows=128))
+    lv = {r["level"]: r for r in out["levels"]}
+    assert lv[0]["style_windows"] == 4 * 10 * 10 and lv[0]["swd"] is not None
+    assert lv[1]["style_windows"] == 4 and lv[1]["swd"] is None
+    assert out["texture_swd"] == lv[0]["swd"]
+    both = texture_levels(frames, ref, TextureConfig(windows=256, directions=32, min_windows=1))
+    assert all(r["swd"] is not None for r in both["levels"])
 
 
 def test_texture_reference_puts_style_elements_at_the_results_pixel_scale():

@@ -356,7 +356,7 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     SWD); ``content_render``: the unstylized content's render with the same cameras (coverage)."""
     from .clip_eval import ClipConfig, ClipUnavailable, CropConfig, clip_similarity, load_clip, random_crops
     from .elements import ElementConfig
-    from .image_metrics import TextureConfig, coverage, texture_swd
+    from .image_metrics import TextureConfig, coverage, texture_levels
     from .metrics import MetricsConfig, weights_free_metrics
     from .render import read_frames
 
@@ -387,8 +387,14 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     out.update(evaluate_elements(result, style, frames, result_render, texture_frames, texture_reference, stylize_npz,
                                  ecfg))
     try:
-        out["texture_swd"] = texture_swd(frames, texture_frames, tcfg)
-        out["texture_status"] = "computed"
+        tex = texture_levels(frames, texture_frames, tcfg)
+        out["texture_swd"] = tex["texture_swd"]
+        out["texture_levels"] = tex["levels"]
+        left = [f"level {r['level']} ({r['result_windows']} result / {r['style_windows']} style reference windows)"
+                for r in tex["levels"] if r["swd"] is None]
+        out["texture_status"] = "computed" + (f"; left out (< {tcfg.min_windows} windows): {', '.join(left)}" if left else "")
+        if left:
+            log.info("evaluate: texture SWD %s", out["texture_status"])
     except ValueError as e:  # a collapsed or scattered result (e.g. entropic OT without debiasing) is a
         # result, not bad input: it gets no texture metric, and the table says why
         out.update({"texture_swd": None, "texture_status": f"not computed: {result_render}: {e}"})
