@@ -31,4 +31,5 @@ rule all:
         [f"{RESULTS}/render/pairs/{c}__{s}/{e}" for c, s in PAIRS for e in RUN],
         f"{RESULTS}/tables/table1.csv",
         [f"{RESULTS}/figures/{c}__{s}.png" for c, s in TABLE1_PAIRS],
+        [f"{RESULTS}/figures/{c}__{s}_turntables.html" for c, s in TABLE1_PAIRS],
     default_target: True

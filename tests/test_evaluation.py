@@ -342,6 +342,12 @@ def test_render_turntable_artifacts_and_sheet(tmp_path):
     assert fr.shape == (6, 48, 48, 4) and float(fr[..., 3].max()) == 1.0
     gif = iio.imread(tmp_path / "a" / "turntable.gif", index=None)
     assert gif.shape[0] == 6
+    import imageio_ffmpeg  # the MP4 beside it: H.264, yuv420p, the same frames
+
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / "a" / "turntable.mp4"))
+    meta = next(reader)
+    assert meta["size"] == (48, 48) and meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    assert sum(1 for _ in reader) == 6
     for name in ("key_00_rgb", "key_01_normal", "closeup_rgb", "closeup_depth", "closeup_normal"):
         assert iio.imread(tmp_path / "a" / f"{name}.png").shape[:2] == (48, 48)
     json.loads((tmp_path / "a" / "render.json").read_text())
@@ -349,6 +355,18 @@ def test_render_turntable_artifacts_and_sheet(tmp_path):
     info2 = render_turntable(make_scene("content", "sphere", 500), scene, tmp_path / "b", cfg)
     assert info2["cameras"] == info["cameras"]
     comparison_sheet([("a", tmp_path / "a"), ("b", tmp_path / "b")], tmp_path / "sheet.png")
+    from wast3d.render import turntable_page, write_mp4
+
+    (tmp_path / "b" / "turntable.mp4").unlink()  # a folder without an MP4 shows its GIF
+    turntable_page([("ours <a>", tmp_path / "a"), ("b", tmp_path / "b")], tmp_path / "page.html")
+    page = (tmp_path / "page.html").read_text()
+    assert page.count("data:video/mp4;base64,") == 1 and page.count("data:image/gif;base64,") == 1
+    assert "ours &lt;a&gt;" in page
+    with pytest.raises(FileNotFoundError, match="neither turntable.mp4"):
+        turntable_page([("x", tmp_path)], tmp_path / "none.html")
+    odd = np.zeros((3, 33, 41, 3), np.uint8)  # odd sizes: padded by one edge pixel for yuv420p
+    assert write_mp4(tmp_path / "odd.mp4", odd, 4.0)
+    assert next(imageio_ffmpeg.read_frames(str(tmp_path / "odd.mp4")))["size"] == (42, 34)
     sheet = iio.imread(tmp_path / "sheet.png")
     assert sheet.shape[1] == 96 and sheet.shape[0] > 5 * 48
     with pytest.raises(FileNotFoundError, match="no turntable frames"):

@@ -347,15 +347,32 @@ def cmd_compare(sub):
     def run(a):
         from .render import comparison_sheet
 
-        cols = []
-        for c in a.columns:
-            if "=" not in c:
-                raise ValueError(f"compare: column '{c}' is not LABEL=FOLDER")
-            label, folder = c.split("=", 1)
-            cols.append((label, Path(folder)))
-        comparison_sheet(cols, a.out_png)
+        comparison_sheet(_columns(a.columns, "compare"), a.out_png)
 
     return run
+
+
+@command("turntables", "one HTML page of render folders' turntables (MP4, or the GIF), side by side")
+def cmd_turntables(sub):
+    sub.add_argument("out_html", type=Path)
+    sub.add_argument("columns", nargs="+", help="LABEL=RENDER_FOLDER ...")
+
+    def run(a):
+        from .render import turntable_page
+
+        turntable_page(_columns(a.columns, "turntables"), a.out_html)
+
+    return run
+
+
+def _columns(specs: list[str], cmd: str) -> list[tuple[str, Path]]:
+    cols = []
+    for c in specs:
+        if "=" not in c:
+            raise ValueError(f"{cmd}: column '{c}' is not LABEL=FOLDER")
+        label, folder = c.split("=", 1)
+        cols.append((label, Path(folder)))
+    return cols
 
 
 def table_command(name: str, help_: str, flag: str, row_help: str, row_fn: str, hidden: tuple[str, ...] = ()):

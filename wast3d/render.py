@@ -5,6 +5,7 @@ Pure helpers take and return tensors; the ``save_*``/``export_*`` functions are 
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -19,6 +20,8 @@ from .gaussians import GaussianScene, shortest_axis
 from .geometry import robust_bounds
 from .io_utils import atomic_path, write_json
 from .rendering import rasterize
+
+log = logging.getLogger(__name__)
 
 
 def scene_bounds(scene: GaussianScene, q: float = 0.005) -> tuple[torch.Tensor, float]:
@@ -238,7 +241,8 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
                      progress: bool = False) -> dict:
     """Write the turntable and close-up of ``scene`` (cameras from ``reference``) under ``out_dir``:
 
-    ``frames/NNN.png`` (RGBA, straight alpha), ``turntable.gif``, ``key_NN_{rgb,depth,normal}.png``,
+    ``frames/NNN.png`` (RGBA, straight alpha), ``turntable.gif`` and ``.mp4`` (:func:`write_mp4`),
+    ``key_NN_{rgb,depth,normal}.png``,
     ``closeup_{rgb,depth,normal}.png`` and ``render.json`` (cameras, fragment, depth range, settings).
     """
     from tqdm import tqdm
@@ -267,6 +271,7 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
         gif.append(to_uint8(m["rgb"]))
     with atomic_path(out_dir / "turntable.gif") as tmp:
         iio.imwrite(tmp, np.stack(gif), extension=".gif", duration=1000.0 / cfg.fps, loop=0)
+    write_mp4(out_dir / "turntable.mp4", np.stack(gif), cfg.fps)
     cu = closeup_camera(cams[keys[0]], pixel, cfg.closeup_zoom, cfg.closeup_size)
     m = render_maps(scene, cu, cfg)
     save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
@@ -277,6 +282,51 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
             "cameras": camera_dicts(cams + [cu])}
     write_json(out_dir / "render.json", info)
     return info
+
+
+def write_mp4(path: str | Path, frames: np.ndarray, fps: float) -> bool:
+    """frames [T, H, W, 3] uint8 -> an H.264 MP4 (yuv420p, faststart: what browsers play) at ``path``,
+    atomically, with the ffmpeg that the ``imageio-ffmpeg`` wheel carries; odd sizes are padded by one
+    edge pixel (yuv420p needs even ones). Without ``imageio-ffmpeg``, logs that and returns False."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        log.warning("%s: no MP4 written (imageio-ffmpeg is not installed); the GIF is", path)
+        return False
+    T, H, W, _ = frames.shape
+    frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")
+    with atomic_path(path) as tmp:
+        w = imageio_ffmpeg.write_frames(str(tmp), (W + W % 2, H + H % 2), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                        quality=8, macro_block_size=1, ffmpeg_log_level="error",
+                                        output_params=["-movflags", "+faststart"])
+        w.send(None)
+        for f in frames:
+            w.send(np.ascontiguousarray(f))
+        w.close()
+    return True
+
+
+def turntable_page(columns: list[tuple[str, str | Path]], out: str | Path) -> None:
+    """One self-contained HTML page: per (label, render folder), its ``turntable.mp4`` embedded as a
+    looping video (the GIF where a folder has no MP4); for the Snakemake report, which shows HTML."""
+    import base64
+    import html
+
+    cells = []
+    for label, folder in columns:
+        mp4, gif = Path(folder) / "turntable.mp4", Path(folder) / "turntable.gif"
+        if mp4.exists():
+            src = base64.b64encode(mp4.read_bytes()).decode()
+            media = f'<video autoplay loop muted playsinline src="data:video/mp4;base64,{src}"></video>'
+        elif gif.exists():
+            media = f'<img src="data:image/gif;base64,{base64.b64encode(gif.read_bytes()).decode()}">'
+        else:
+            raise FileNotFoundError(f"turntable page: {folder} has neither turntable.mp4 nor turntable.gif")
+        cells.append(f"<figure>{media}<figcaption>{html.escape(label)}</figcaption></figure>")
+    style = "body{font-family:sans-serif;display:flex;flex-wrap:wrap}figure{margin:4px}video,img{width:256px}"
+    with atomic_path(out) as tmp:
+        Path(tmp).write_text(f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><style>{style}</style></head>"
+                             f"<body>\n{''.join(cells)}\n</body></html>\n")
 
 
 def save_element_frame(scene: GaussianScene, cam: Camera, out_dir: Path, i: int) -> None:

@@ -216,3 +216,13 @@ def clip_inputs():
     """The CLIP checkpoint (and model config) are inputs of evaluate when set, so a change re-runs it."""
     clip = EVALUATION.get("clip", {})
     return [p for p in (clip.get("checkpoint"), clip.get("model_config")) if p]
+
+
+def sheet_columns(input, reference=True):
+    """LABEL=FOLDER arguments of `wast3d compare` / `wast3d turntables`: content, style, (the style at
+    the result's scale), then Table 1's methods."""
+    head = [("content", input.content), ("style", input.style)]
+    head += [("style at the result's scale", input.reference)] if reference else []
+    methods = [m for m in TABLE1_METHODS if m != "input"]
+    return " ".join(shlex.quote(f"{label}={path}") for label, path in
+                    head + [(TABLE1_METHODS[m], p) for m, p in zip(methods, input.methods)])

@@ -119,10 +119,7 @@ rule comparison_sheet:
         report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
     params:
         exe=WAST3D,
-        columns=lambda w, input: " ".join(
-            shlex.quote(f"{label}={path}") for label, path in
-            [("content", input.content), ("style", input.style), ("style at the result's scale", input.reference)]
-            + [(TABLE1_METHODS[m], p) for m, p in zip([m for m in TABLE1_METHODS if m != "input"], input.methods)]),
+        columns=lambda w, input: sheet_columns(input),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -131,6 +128,27 @@ rule comparison_sheet:
         f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}.tsv"
     shell:
         "{params.exe} --threads {threads} compare {output} {params.columns} 2> {log}"
+
+
+rule turntable_page:
+    input:
+        content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
+        style=f"{RESULTS}/render/scenes/{{style}}",
+        methods=lambda w: [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in TABLE1_METHODS if m != "input"],
+    output:
+        report(f"{RESULTS}/figures/{{content}}__{{style}}_turntables.html", caption="../report/turntables.rst",
+               category="Turntables"),
+    params:
+        exe=WAST3D,
+        columns=lambda w, input: sheet_columns(input, reference=False),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/figures/{{content}}__{{style}}_turntables.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/turntables_{{content}}__{{style}}.tsv"
+    shell:
+        "{params.exe} --threads {threads} turntables {output} {params.columns} 2> {log}"
 
 
 rule table1:
