@@ -79,13 +79,19 @@ def test_bad_splat_files_name_the_file_and_the_field(tmp_path, case, field):
         rec["rot"][3] = 128
     raw = rec.tobytes()
     raw = raw[:-5] if case == "truncated" else b"" if case == "empty" else raw
-    path = tmp_path / f"{case}.splat"
+    _refused(tmp_path / f"{case}.splat", raw, read_splat, field)
+
+
+def _refused(path, raw, reader, field):
+    """``raw`` written to ``path`` is refused by ``reader`` with an error naming the file and ``field``;
+    a missing file of that extension is a FileNotFoundError naming it."""
     path.write_bytes(raw)
     with pytest.raises(PlyError, match=field) as e:
-        read_splat(path)
+        reader(path)
     assert str(path) in str(e.value)
-    with pytest.raises(FileNotFoundError, match="nothere.splat"):
-        read_scene(tmp_path / "nothere.splat")
+    missing = path.with_name("nothere" + path.suffix)
+    with pytest.raises(FileNotFoundError, match=missing.name):
+        read_scene(missing)
 
 
 # ---- SPZ (wast3d.spz) ----------------------------------------------------------------------------
@@ -203,13 +209,7 @@ def test_bad_spz_files_name_the_file_and_the_field(tmp_path, case, field):
         "corrupt": raw[:32 + 16 * 6] + bytes(20) + raw[32 + 16 * 6 + 20:],
         "degree": raw[:12] + bytes([7]) + raw[13:],
     }[case]
-    path = tmp_path / f"{case}.spz"
-    path.write_bytes(raw)
-    with pytest.raises(PlyError, match=field) as e:
-        read_spz(path)
-    assert str(path) in str(e.value)
-    with pytest.raises(FileNotFoundError, match="nothere.spz"):
-        read_scene(tmp_path / "nothere.spz")
+    _refused(tmp_path / f"{case}.spz", raw, read_spz, field)
     with pytest.raises(ValueError, match="version 9"):
         write_spz(tmp_path / "x.spz", random_scene(2, seed=0), version=9)
 

@@ -339,30 +339,28 @@ stage_command("evaluate", "stage 8: weights-free metrics and CLIP crop similarit
               "run_evaluate", options=("stylize_npz",))
 
 
-@command("compare", "side-by-side comparison sheet of render folders (content, style, ours, baselines)")
-def cmd_compare(sub):
-    sub.add_argument("out_png", type=Path)
-    sub.add_argument("columns", nargs="+", help="LABEL=RENDER_FOLDER ...")
+def columns_command(name: str, help_: str, out: str, fn: str):
+    """A command writing ``out`` from LABEL=RENDER_FOLDER columns with ``render.<fn>(columns, out)``."""
 
-    def run(a):
-        from .render import comparison_sheet
+    @command(name, help_)
+    def cmd(sub):
+        sub.add_argument(out, type=Path)
+        sub.add_argument("columns", nargs="+", help="LABEL=RENDER_FOLDER ...")
 
-        comparison_sheet(_columns(a.columns, "compare"), a.out_png)
+        def run(a):
+            from . import render
 
-    return run
+            getattr(render, fn)(_columns(a.columns, name), getattr(a, out))
+
+        return run
+
+    return cmd
 
 
-@command("turntables", "one HTML page of render folders' turntables (MP4, or the GIF), side by side")
-def cmd_turntables(sub):
-    sub.add_argument("out_html", type=Path)
-    sub.add_argument("columns", nargs="+", help="LABEL=RENDER_FOLDER ...")
-
-    def run(a):
-        from .render import turntable_page
-
-        turntable_page(_columns(a.columns, "turntables"), a.out_html)
-
-    return run
+columns_command("compare", "side-by-side comparison sheet of render folders (content, style, ours, baselines)",
+                "out_png", "comparison_sheet")
+columns_command("turntables", "one HTML page of render folders' turntables (MP4, or the GIF), side by side",
+                "out_html", "turntable_page")
 
 
 def _columns(specs: list[str], cmd: str) -> list[tuple[str, Path]]:
