@@ -128,6 +128,20 @@ def test_atomic_write_keeps_old_file(tmp_path, monkeypatch):
     assert [f.name for f in tmp_path.iterdir()] == ["a.ply"]  # no temporary left behind
 
 
+def test_atomic_write_gives_the_permissions_of_a_plain_open(tmp_path):
+    """Not the owner-only mode of a temporary file: 0666 less the umask (0644 under umask 022)."""
+    import os
+
+    old = os.umask(0o022)
+    try:
+        write_ply(tmp_path / "a.ply", random_scene(5))
+        with open(tmp_path / "plain", "w"):
+            pass
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.ply").stat().st_mode & 0o777 == (tmp_path / "plain").stat().st_mode & 0o777 == 0o644
+
+
 def test_info_cli(tmp_path):
     import json
 

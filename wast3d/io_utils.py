@@ -18,6 +18,8 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
 
     A crash or exception leaves any existing ``path`` untouched and removes the temporary file.
     The temporary keeps the final suffix so that writers choosing a format by extension still work.
+    The file gets the permissions a plain ``open`` would give it (0666 less the umask), not the
+    owner-only ones of a temporary file: results are read by others on a shared cluster.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -27,10 +29,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp = Path(tmp)
     try:
         yield tmp
+        if tmp.exists():
+            os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _jsonable(o: Any) -> Any:
