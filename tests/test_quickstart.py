@@ -50,3 +50,38 @@ def test_run_writes_the_config_and_starts_the_workflow(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "wast3d", "run", str(tmp_path / "missing.ply"), str(s), str(out)],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "missing.ply: file not found" in bad.stderr
+
+
+def test_a_wheel_carries_its_workflow(tmp_path):
+    """`pip wheel .` holds the Snakefile, the rules, schemas, profiles and the default config; installed
+    (not editable) into a temporary venv that sees this venv's dependencies but not its editable
+    wast3d, `python -m wast3d run` dry-runs from a folder outside the checkout with the wheel's copy."""
+    import sysconfig
+    import zipfile
+
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation", "-q",
+                    "-w", str(tmp_path / "dist")], check=True, capture_output=True)
+    wheel, = (tmp_path / "dist").glob("wast3d-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for f in ("Snakefile", "config/config.yaml", "workflow/rules/common.smk", "workflow/schemas/config.schema.yaml",
+              "workflow/profiles/local/config.yaml", "workflow/report/workflow.rst"):
+        assert f"wast3d/_workflow/{f}" in names, f
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    site = Path(subprocess.run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                               capture_output=True, text=True, check=True).stdout.strip())
+    (site / "_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")  # a plain path: no editable finder
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "-q", "--target", str(site),
+                    str(wheel)], check=True, capture_output=True)
+    where = subprocess.run([py, "-c", "import wast3d; print(wast3d.__file__)"], capture_output=True, text=True,
+                           cwd=tmp_path).stdout.strip()
+    assert where.startswith(str(site)), where
+    c, s = tmp_path / "blob.ply", tmp_path / "peb.ply"
+    write_ply(c, random_scene(300, seed=1))
+    write_ply(s, random_scene(300, seed=2))
+    r = subprocess.run([py, "-m", "wast3d", "run", str(c), str(s), str(tmp_path / "out"), "-n"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert str(site / "wast3d" / "_workflow" / "Snakefile") in r.stderr
+    assert "rule sinkhorn:" in r.stdout and "results/stylize/blob__peb/default/final.ply" in r.stdout

@@ -104,7 +104,7 @@ def cmd_run(sub):
     sub.add_argument("content", type=Path, help="PLY (reference, compressed or point cloud) or Blender folder")
     sub.add_argument("style", type=Path, help="PLY or Blender folder")
     sub.add_argument("out", type=Path, help="working folder: config/ and results/ go here (re-runs reuse its cache)")
-    sub.add_argument("--profile", default=None, help="Snakemake profile (default: the repository's workflow/profiles/local)")
+    sub.add_argument("--profile", default=None, help="Snakemake profile (default: the workflow's profiles/local)")
     sub.add_argument("-n", "--dry-run", action="store_true", help="only show what would run")
     sub.add_argument("snakemake_args", nargs="*", help="more Snakemake arguments, after --")
 
@@ -114,11 +114,9 @@ def cmd_run(sub):
         import yaml
 
         from .io_utils import atomic_path
-        from .quickstart import two_scene_config
+        from .quickstart import two_scene_config, workflow_root
 
-        root = Path(__file__).resolve().parents[1]
-        if not (root / "Snakefile").exists():
-            raise FileNotFoundError(f"{root / 'Snakefile'}: wast3d run needs the repository checkout (pip install -e)")
+        root = workflow_root()
         base = yaml.safe_load((root / "config" / "config.yaml").read_text())
         cfg = two_scene_config(base, a.content, a.style)
         cfg_path = a.out / "config" / "config.yaml"

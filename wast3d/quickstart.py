@@ -22,6 +22,17 @@ TABLE1_METHODS = {
 }
 
 
+def workflow_root() -> Path:
+    """The folder holding the ``Snakefile``, ``workflow/`` and ``config/config.yaml``: the repository
+    checkout this package sits in, else the copy an installed wheel carries (``wast3d/_workflow``)."""
+    here = Path(__file__).resolve().parent
+    for root in (here.parent, here / "_workflow"):
+        if (root / "Snakefile").is_file() and (root / "workflow" / "rules").is_dir():
+            return root
+    raise FileNotFoundError(f"{here}: neither a repository checkout nor a wheel's wast3d/_workflow holds the "
+                            "Snakefile (a broken install: reinstall wast3d)")
+
+
 def scene_entry(path: Path) -> dict:
     """A ``scenes`` entry for a scene file (any format :func:`~wast3d.formats.read_scene` reads) or a
     Blender folder of posed images."""
