@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -373,6 +375,28 @@ def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
     assert len(idx) == len(scene) and rep["skipped"]
     with pytest.raises(ValueError, match="no Gaussians"):
         clean_style(scene.subset(torch.zeros(0, dtype=torch.long)), StyleCleanConfig())
+
+
+def test_style_cleaning_of_colour_outliers():
+    """colour_outliers: magenta Gaussians set among the pebbles go; of the rest about 10 % go with them
+    (sand grains of scattered shades, pebble rims whose neighbours are mostly sand): a trade, off by
+    default."""
+    from wast3d.procedural import style_scene
+
+    s = style_scene("pebbles", 20000)
+    g = torch.Generator().manual_seed(0)
+    pick = torch.randperm(len(s), generator=g)[:200]
+    dc = s.sh_dc.clone()
+    dc[pick] = (torch.tensor([1.0, 0.0, 1.0]) - 0.5) / 0.28209479177387814  # magenta
+    odd = GaussianScene(**{**s.tensors(), "sh_dc": dc}, element=s.element)
+    cfg = StyleCleanConfig(visibility=False, below_ground=0, outlier_k=0)
+    idx, rep = clean_style(odd, replace(cfg, colour_outliers=0.3))
+    assert not torch.isin(pick, idx).any() and rep["removed_colour_outliers"] >= 200
+    assert rep["removed_colour_outliers"] < 200 + 0.15 * len(s)
+    idx0, rep0 = clean_style(odd, cfg)
+    assert torch.isin(pick, idx0).all() and "removed_colour_outliers" not in rep0
+    with pytest.raises(ValueError, match="colour_k"):
+        StyleCleanConfig(colour_k=0)
 
 
 def test_relief_length_follows_element_size_not_gaussian_count():

@@ -54,7 +54,11 @@ centre lies more than ``below_ground`` relief heights under the ground a view fr
 and on the content they are seen from the side: on the demo's trained pebbles, 225 Gaussians more
 than 0.05 under the ground (3 % of the collage's) drew 38 % of its close-up's pixels, large opaque
 blobs in tints the style's renders do not show. A two-layer weave would lose its lower strands to
-this rule (the procedural wicker, which is never cleaned, loses 6,535 of 30,000).
+this rule (the procedural wicker, which is never cleaned, loses 6,535 of 30,000). *Colour
+outliers* (``colour_outliers`` > 0, off by default): Gaussians whose colour lies farther than that (RGB
+distance) from the median colour of their ``colour_k`` nearest kept neighbours; a trained patch holds
+a few percent of magenta, blue or green Gaussians inside brown and grey pebbles, mostly seen through
+gaps, which the stylization exposes as specks.
 """
 
 from __future__ import annotations
@@ -115,6 +119,8 @@ class StyleCleanConfig:
     resolution: int = 200
     min_seen: float = 0.05  # hidden: less than this fraction of a Gaussian is seen in its best view
     below_ground: float = 0.5  # below the ground: centre more than this many relief heights under the ground (0: off)
+    colour_outliers: float = 0.0  # colour farther than this (RGB) from the median of its colour_k neighbours (0: off)
+    colour_k: int = 16
     seed: int = 0
 
     def __post_init__(self):
@@ -122,6 +128,8 @@ class StyleCleanConfig:
             raise ValueError("style_clean: need 0 <= core_quantile < 0.5, core_margin >= 0, 0 <= min_opacity < 1")
         if self.min_seen < 0 or self.below_ground < 0:
             raise ValueError(f"style_clean: need min_seen >= 0 and below_ground >= 0, got {self.min_seen}, {self.below_ground}")
+        if self.colour_outliers < 0 or self.colour_k < 1:
+            raise ValueError(f"style_clean: need colour_outliers >= 0 and colour_k >= 1, got {self.colour_outliers}, {self.colour_k}")
 
 
 CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
@@ -530,7 +538,23 @@ def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tens
         if len(idx):
             w[idx] = seen_fraction(scene.subset(idx), cfg.views, cfg.resolution, STYLE_ELEVATIONS)
         _drop(keep, w < cfg.min_seen, report, "removed_hidden")
+    if cfg.colour_outliers > 0:
+        _colour_outliers(scene, keep, cfg.colour_k, cfg.colour_outliers, report)
     idx = keep.nonzero().squeeze(1)
     if len(idx) == 0:
         raise ValueError("style cleaning removed every Gaussian; relax min_opacity / min_seen")
     return idx, _kept(report, idx, n, "style cleaning")
+
+
+def _colour_outliers(scene: GaussianScene, keep: torch.Tensor, k: int, limit: float, report: dict) -> None:
+    """Drop kept Gaussians whose RGB lies more than ``limit`` from the median RGB of their k nearest
+    kept neighbours (positions)."""
+    idx = keep.nonzero().squeeze(1)
+    if len(idx) <= k:
+        return
+    _, nb = knn(scene.means[idx], scene.means[idx], k, exclude_self=True)
+    rgb = scene.rgb.detach().clamp(0, 1)[idx]
+    dev = (rgb - rgb[nb].median(dim=1).values).norm(dim=1)
+    out = torch.zeros_like(keep)
+    out[idx[dev > limit]] = True
+    _drop(keep, out, report, "removed_colour_outliers")
