@@ -388,7 +388,7 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
     run_render(tmp_path / "s.ply", tmp_path / "s.ply", tmp_path / "rs", rp, progress=False)
     run_texture_reference(tmp_path / "s.ply", tmp_path / "c.ply", tmp_path / "rx", rp, progress=False)
     small = {"patches": 8, "candidates": 16, "patch_size": 8, "rotations": 2, "colour_points": 128}
-    base = {"metrics": small, "crops": {"count": 4, "size": 16}, "texture": {"windows": 64, "levels": 1}}
+    base = {"metrics": small, "crops": {"count": 4, "size": 16}, "texture": {"windows": 64, "levels": 1, "min_windows": 8}}
     run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
                  tmp_path / "rx", tmp_path / "rc", tmp_path / "none.json", base)
     ev = json.loads((tmp_path / "none.json").read_text())
@@ -415,7 +415,7 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
                  tmp_path / "rx", tmp_path / "rc", tmp_path / "tiny.json", base)
     ev = json.loads((tmp_path / "tiny.json").read_text())
     assert ev["coverage"] < 0.1 and ev["texture_swd"] is None and ev["crops"]["result"] == 0
-    assert "no 5x5 window inside the foreground" in ev["texture_status"] and "no crop with mean alpha" in ev["clip_status"]
+    assert "5x5 windows inside the foreground" in ev["texture_status"] and "result 0" in ev["texture_status"] and "no crop with mean alpha" in ev["clip_status"]
     assert ev["content_chamfer"] > 1
     with pytest.raises(ValueError, match="evaluate.metrics: unknown parameter.*patchez"):
         run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc",
