@@ -269,9 +269,10 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
         save_element_frame(scene, cam, out_dir, i)
         gif.append(to_uint8(m["rgb"]))
+    gif = np.stack(gif)
     with atomic_path(out_dir / "turntable.gif") as tmp:
-        iio.imwrite(tmp, np.stack(gif), extension=".gif", duration=1000.0 / cfg.fps, loop=0)
-    write_mp4(out_dir / "turntable.mp4", np.stack(gif), cfg.fps)
+        iio.imwrite(tmp, gif, extension=".gif", duration=1000.0 / cfg.fps, loop=0)
+    write_mp4(out_dir / "turntable.mp4", gif, cfg.fps)
     cu = closeup_camera(cams[keys[0]], pixel, cfg.closeup_zoom, cfg.closeup_size)
     m = render_maps(scene, cu, cfg)
     save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
@@ -293,10 +294,10 @@ def write_mp4(path: str | Path, frames: np.ndarray, fps: float) -> bool:
     except ImportError:
         log.warning("%s: no MP4 written (imageio-ffmpeg is not installed); the GIF is", path)
         return False
-    T, H, W, _ = frames.shape
+    _, H, W, _ = frames.shape
     frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")
     with atomic_path(path) as tmp:
-        w = imageio_ffmpeg.write_frames(str(tmp), (W + W % 2, H + H % 2), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+        w = imageio_ffmpeg.write_frames(str(tmp), (frames.shape[2], frames.shape[1]), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
                                         quality=8, macro_block_size=1, ffmpeg_log_level="error",
                                         output_params=["-movflags", "+faststart"])
         w.send(None)

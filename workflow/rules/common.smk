@@ -218,11 +218,18 @@ def clip_inputs():
     return [p for p in (clip.get("checkpoint"), clip.get("model_config")) if p]
 
 
+SHEET_METHODS = [m for m in TABLE1_METHODS if m != "input"]  # the comparison sheet's and turntable page's methods
+
+
+def sheet_method_renders(w):
+    """The render folders of SHEET_METHODS for one pair (the `methods` input of those rules)."""
+    return [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in SHEET_METHODS]
+
+
 def sheet_columns(input, reference=True):
     """LABEL=FOLDER arguments of `wast3d compare` / `wast3d turntables`: content, style, (the style at
     the result's scale), then Table 1's methods."""
     head = [("content", input.content), ("style", input.style)]
     head += [("style at the result's scale", input.reference)] if reference else []
-    methods = [m for m in TABLE1_METHODS if m != "input"]
     return " ".join(shlex.quote(f"{label}={path}") for label, path in
-                    head + [(TABLE1_METHODS[m], p) for m, p in zip(methods, input.methods)])
+                    head + [(TABLE1_METHODS[m], p) for m, p in zip(SHEET_METHODS, input.methods)])

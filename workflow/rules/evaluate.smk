@@ -114,7 +114,7 @@ rule comparison_sheet:
         content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
         style=f"{RESULTS}/render/scenes/{{style}}",
         reference=f"{RESULTS}/render/texture_reference/{{content}}__{{style}}",
-        methods=lambda w: [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in TABLE1_METHODS if m != "input"],
+        methods=sheet_method_renders,
     output:
         report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
     params:
@@ -134,7 +134,7 @@ rule turntable_page:
     input:
         content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
         style=f"{RESULTS}/render/scenes/{{style}}",
-        methods=lambda w: [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in TABLE1_METHODS if m != "input"],
+        methods=sheet_method_renders,
     output:
         report(f"{RESULTS}/figures/{{content}}__{{style}}_turntables.html", caption="../report/turntables.rst",
                category="Turntables"),
