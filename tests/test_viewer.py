@@ -94,25 +94,48 @@ def _screenshot_when(url: str, browser: str, ready, timeout: float = 90.0) -> np
         proc.kill()
 
 
+def _stripes() -> "GaussianScene":
+    """A card of colour stripes running away from the viewer's camera (dark brown, near-black, grey,
+    near-white, red, green, blue, and a translucent sparse stripe), so that every stripe reaches the
+    lower half of the page, below viser's panels."""
+    from wast3d.gaussians import GaussianScene
+
+    g = torch.Generator().manual_seed(0)
+    colours = [(0.35, 0.22, 0.12), (0.08, 0.08, 0.10), (0.5, 0.5, 0.5), (0.92, 0.9, 0.88),
+               (0.8, 0.15, 0.1), (0.15, 0.6, 0.2), (0.2, 0.3, 0.8), (0.1, 0.1, 0.1)]
+    means, rgb, opac = [], [], []
+    for k, c in enumerate(colours):
+        n = 300 if k == 7 else 2500
+        xy = torch.rand(n, 2, generator=g) * torch.tensor([0.2, 1.6]) + torch.tensor([0.25 * k - 1.0, -0.8])
+        means.append(torch.cat([xy, 0.01 * torch.rand(n, 1, generator=g)], 1))
+        rgb.append(torch.tensor(c).expand(n, 3))
+        opac.append(torch.full((n,), 0.3 if k == 7 else 0.9))
+    n = sum(len(m) for m in means)
+    return GaussianScene.from_activated(torch.cat(means), torch.full((n, 3), 0.025),
+                                        torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4), torch.cat(opac), torch.cat(rgb))
+
+
 @pytest.mark.browser
-def test_viewer_page_shows_the_splats_in_chromium(tmp_path):
-    """``wast3d view`` on a red ball of Gaussians: a real headless Chromium opens the page, connects,
-    and the screenshot shows red splats in the middle of the canvas (none before the scene is sent)."""
+def test_viewer_page_shows_what_the_renderer_shows(tmp_path):
+    """``wast3d view`` in a real headless Chromium (software WebGL) against the project's rasterizer
+    from the same camera (:func:`wast3d.viewer.view_camera`): once the page has settled (viser fades
+    splats in, shrunken, for its first frames), the two agree to a few levels of 255 in the lower half
+    of the page (the upper holds viser's panels). A control that must fail: the render blended halfway
+    to white (how the viewer looked when caught mid fade-in) is far off by the same measure."""
     pytest.importorskip("viser")
     browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
     if browser is None:
         pytest.skip("no chromium on this machine (apt-get install -y chromium)")
-    from wast3d.gaussians import GaussianScene
-    from wast3d.ply import write_ply
+    import imageio.v3 as iio
 
-    g = torch.Generator().manual_seed(0)
-    n = 4000
-    pts = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
-    ball = GaussianScene.from_activated(pts, torch.full((n, 3), 0.05), torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4),
-                                        torch.full((n,), 0.9), torch.tensor([[0.9, 0.1, 0.1]]).expand(n, 3))
-    write_ply(tmp_path / "ball.ply", ball)
+    from wast3d.ply import write_ply
+    from wast3d.rendering import rasterize
+    from wast3d.viewer import placed, view_camera
+
+    scene = _stripes()
+    write_ply(tmp_path / "stripes.ply", scene)
     port = _free_port()
-    server = subprocess.Popen([sys.executable, "-m", "wast3d", "view", str(tmp_path / "ball.ply"), "--port", str(port)],
+    server = subprocess.Popen([sys.executable, "-m", "wast3d", "view", str(tmp_path / "stripes.ply"), "--port", str(port)],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
     try:
         for _ in range(120):
@@ -122,18 +145,30 @@ def test_viewer_page_shows_the_splats_in_chromium(tmp_path):
             except OSError:
                 assert server.poll() is None, server.stdout.read()
                 time.sleep(0.5)
+        last = {}
 
-        def red_in_middle(img):
-            h, w = img.shape[:2]
-            mid = img[h // 4: 3 * h // 4, w // 4: 3 * w // 4].astype(int)
-            red = (mid[..., 0] > 120) & (mid[..., 0] > mid[..., 1] + 60) & (mid[..., 0] > mid[..., 2] + 60)
-            return red.mean() > 0.02
+        def settled(img):  # splats drawn in the lower half, and the same picture as 2 s before
+            h = img.shape[0]
+            drawn = (np.abs(img[h // 2:].astype(int) - 255).sum(-1) > 30).mean() > 0.05
+            same = "img" in last and last["img"].shape == img.shape and np.abs(last["img"].astype(int) - img).mean() < 0.2
+            last["img"] = img
+            return drawn and same
 
-        img = _screenshot_when(f"http://127.0.0.1:{port}", browser, red_in_middle)
-        import imageio.v3 as iio
-
-        iio.imwrite(tmp_path / "viewer.png", img)
-        assert red_in_middle(img), f"no red splats in the page's screenshot ({tmp_path / 'viewer.png'})"
+        page = _screenshot_when(f"http://127.0.0.1:{port}", browser, settled, timeout=240)
     finally:
         server.terminate()
         server.wait(timeout=10)
+    h, w = page.shape[:2]
+    r = rasterize(placed(scene), view_camera(w, h), background=(1.0, 1.0, 1.0), sh_degree=0)
+    render = (r["rgb"].clamp(0, 1) * 255).round().numpy()
+    iio.imwrite(tmp_path / "viewer_vs_render.png", np.concatenate([page, render.astype(np.uint8)], 1))
+    lower = np.zeros((h, w), bool)
+    lower[h // 2:] = True
+    drawn = lower & (r["alpha"].numpy() > 0.02)
+    assert drawn.sum() > 0.05 * lower.sum(), "the stripes should fill the lower half of the render"
+    err = np.abs(page[lower].astype(float) - render[lower]).mean()
+    err_drawn = np.abs(page[drawn].astype(float) - render[drawn]).mean(0)
+    pale = 0.5 * render + 0.5 * 255
+    err_pale = np.abs(page[lower].astype(float) - pale[lower]).mean()
+    assert err < 4.0 and err_drawn.max() < 6.0, (err, err_drawn, tmp_path / "viewer_vs_render.png")
+    assert err_pale > 4 * err, (err_pale, err)

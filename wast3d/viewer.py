@@ -5,17 +5,24 @@ Scenes are shown one at a time, each scaled to the same size (a small style patc
 content scene open in the same view); a dropdown in the page switches between them. viser renders
 the splats with its own WebGL rasterizer (view-independent colour: the DC term);
 ``max_gaussians`` keeps the page responsive for large scenes by keeping the most opaque ones.
+
+The page opens at :func:`view_camera`: a render of :func:`placed` from that camera with
+:func:`wast3d.rendering.rasterize` (DC colour, white background) is what the page shows once viser's
+fade-in has ended (its first frames draw the splats shrunken, which reads as pale; in software WebGL
+that lasts tens of seconds). ``tests/test_viewer.py`` compares the two in headless Chromium.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from .cameras import Camera, fov_to_focal, look_at
 from .gaussians import GaussianScene
 from .render import scene_bounds
 
@@ -43,6 +50,23 @@ def unit_placement(scene: GaussianScene) -> tuple[float, np.ndarray]:
     return scale, -scale * centre.double().numpy()
 
 
+def placed(scene: GaussianScene) -> GaussianScene:
+    """``scene`` as the page shows it: moved and scaled by :func:`unit_placement`."""
+    scale, position = unit_placement(scene)
+    return scene.transform(translation=torch.as_tensor(position, dtype=scene.dtype), scale=scale)
+
+
+VIEW_EYE = (0.0, -2.6, 1.3)  # the initial camera, in the placed frame (+z up), looking at the origin
+VIEW_FOV_DEG = 50.0  # its vertical field of view
+
+
+def view_camera(width: int, height: int) -> Camera:
+    """The page's initial camera on a ``width`` x ``height`` canvas, as a :class:`Camera` (OpenCV axes,
+    vertical field of view ``VIEW_FOV_DEG``, principal point at the centre)."""
+    f = fov_to_focal(math.radians(VIEW_FOV_DEG), height)
+    return Camera(look_at(VIEW_EYE, (0.0, 0.0, 0.0)), f, f, width / 2, height / 2, width, height, name="view")
+
+
 def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaussians: int | None = 300_000):
     """Start a viser server showing the scenes in ``paths`` one at a time (a dropdown switches);
     returns the server (it runs in threads).
@@ -59,7 +83,8 @@ def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaus
     server.scene.set_up_direction("+z")
     server.initial_camera.look_at = (0.0, 0.0, 0.0)
     server.initial_camera.up = (0.0, 0.0, 1.0)
-    server.initial_camera.position = (0.0, -2.6, 1.3)
+    server.initial_camera.position = VIEW_EYE
+    server.initial_camera.fov = math.radians(VIEW_FOV_DEG)
     names = list(scenes)
     pick = server.gui.add_dropdown("scene", options=names, initial_value=names[0])
     stats = server.gui.add_markdown("")
