@@ -1,12 +1,17 @@
 """Rasterizer benchmark: forward and forward+backward time and peak memory at 200x200 on CPU.
 
     python benchmarks/render.py [--sizes 10000 50000 200000] [--backends native torch] [--repeats 5]
+                                [--previous REV]
 
 Scenes: N Gaussians on the surface of a procedural content mesh (a trained-object-like layout, scale
 matched to the sample spacing), seen by an orbit camera that frames the object. Each (backend, N)
 runs in a fresh subprocess so its peak resident memory (VmHWM, reset before the timed part) is its
 own. Writes ``results/benchmarks/render.csv``; times are medians over ``--repeats`` after one warm-up.
-The last column gives each backend's time relative to the native one in the same run.
+``--previous REV`` adds the backend ``native@REV``: the native kernels of git revision REV, built from
+its ``wast3d/csrc`` into a cache of their own, timed in the same run. Besides the whole rasterizer
+(projection, binning and compositing), ``composite_*_s`` time the native compositing kernel alone (the
+part the C code does). The ``*_vs_native`` columns give each time relative to the native backend's in
+the same run.
 """
 
 from __future__ import annotations
@@ -28,13 +33,35 @@ def _rss(field: str) -> float:
     return float("nan")
 
 
+def previous_kernels(rev: str) -> None:
+    """Make this process's native kernels those of git revision ``rev`` (built from its csrc)."""
+    import ctypes
+    import tempfile
+
+    from wast3d import _native
+
+    src = Path(tempfile.mkdtemp(prefix="wast3d-csrc-"))
+    files = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", f"{rev}:wast3d/csrc"],
+                           capture_output=True, text=True, check=True).stdout.split()
+    for f in files:
+        (src / f).write_bytes(subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:wast3d/csrc/{f}"],
+                                             capture_output=True, check=True).stdout)
+    libs = {}
+    _native.load = lambda name: libs.setdefault(name, ctypes.CDLL(str(_native.build(name, csrc=src))))
+
+
 def worker(backend: str, n: int, size: int, repeats: int, mesh: str) -> dict:
     import torch
 
     torch.set_flush_denormal(True)
     from wast3d.procedural import content_scene
-    from wast3d.rendering import rasterize
+    from wast3d.rendering import bin_tiles, composite_native, project, rasterize
     from wast3d.render import fit_orbit
+
+    label = backend
+    if backend.startswith("native@"):
+        previous_kernels(backend.split("@", 1)[1])
+        backend = "native"
 
     scene = content_scene(mesh, n, seed=0)
     cam = fit_orbit(scene, 3, size)[1]
@@ -55,8 +82,24 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str) -> dict:
         fb.append(t2 - t0)
     peak = _rss("VmHWM")
     med = lambda xs: sorted(xs)[len(xs) // 2]  # noqa: E731
-    return {"backend": backend, "gaussians": n, "width": size, "height": size, "threads": torch.get_num_threads(),
+    cf, cb = [float("nan")], [float("nan")]
+    if backend == "native":  # the compositing kernel alone, on the same projected Gaussians
+        with torch.no_grad():
+            p = project(scene.means, scene.quats, scene.scales, scene.opacities, cam)
+            gid, off = bin_tiles(p, cam.width, cam.height)
+        feats = torch.rand(len(p.ids), 4)
+        cf, cb = [], []
+        for _ in range(repeats):
+            args = [t.detach().clone().requires_grad_(True) for t in (p.means2d, p.conics, feats, p.opacities)]
+            t0 = time.perf_counter()
+            out, T = composite_native(*args, gid, off, cam.width, cam.height, radii=p.radii)
+            t1 = time.perf_counter()
+            (out.sum() + T.sum()).backward()
+            cf.append(t1 - t0)
+            cb.append(time.perf_counter() - t1)
+    return {"backend": label, "gaussians": n, "width": size, "height": size, "threads": torch.get_num_threads(),
             "visible": int(r["visible_ids"].numel()), "forward_s": med(fwd), "forward_backward_s": med(fb),
+            "composite_forward_s": med(cf), "composite_backward_s": med(cb),
             "peak_mb_above_baseline": peak - base, "peak_rss_mb": peak}
 
 
@@ -67,6 +110,7 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--mesh", default="sphere")
+    ap.add_argument("--previous", help="also time the native kernels of this git revision (backend native@REV)")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "render.csv")
     ap.add_argument("--_worker", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -76,10 +120,11 @@ def main() -> None:
     import pandas as pd
 
     rows = []
+    backends = a.backends + ([f"native@{a.previous}"] if a.previous else [])
     for n in a.sizes:
-        for b in a.backends:
+        for b in backends:
             cmd = [sys.executable, __file__, "--_worker", b, str(n), "--resolution", str(a.resolution),
-                   "--repeats", str(a.repeats if b == "native" else max(1, a.repeats // 2)), "--mesh", a.mesh]
+                   "--repeats", str(a.repeats if b.startswith("native") else max(1, a.repeats // 2)), "--mesh", a.mesh]
             out = subprocess.run(cmd, capture_output=True, text=True)
             if out.returncode:
                 print(out.stderr, file=sys.stderr)
@@ -87,8 +132,10 @@ def main() -> None:
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
             print(rows[-1], flush=True)
     df = pd.DataFrame(rows)
-    ref = df[df.backend == "native"].set_index("gaussians")["forward_backward_s"]
-    df["fb_time_vs_native"] = df.apply(lambda r: r.forward_backward_s / ref.get(r.gaussians, float("nan")), axis=1)
+    native = df[df.backend == "native"].set_index("gaussians")
+    for col, name in (("forward_backward_s", "fb_time_vs_native"), ("composite_forward_s", "composite_fwd_vs_native"),
+                      ("composite_backward_s", "composite_bwd_vs_native")):
+        df[name] = df.apply(lambda r: r[col] / native[col].get(r.gaussians, float("nan")), axis=1)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(a.out, index=False)
     print(df.to_string(index=False))

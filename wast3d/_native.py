@@ -46,12 +46,13 @@ def _compiler() -> str | None:
     return os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
 
 
-def build(name: str, force: bool = False) -> Path:
-    """Compile ``csrc/<name>.c`` (float32 and float64) into a cached shared library; return its path."""
+def build(name: str, force: bool = False, csrc: Path = CSRC) -> Path:
+    """Compile ``<csrc>/<name>.c`` (float32 and float64) into a cached shared library; return its path.
+    ``csrc`` other than the package's: another version of the sources (the benchmarks' previous one)."""
     cc = _compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC)")
-    src = (CSRC / f"{name}.c").read_bytes() + b"".join(h.read_bytes() for h in sorted(CSRC.glob("*.h")))
+    src = (csrc / f"{name}.c").read_bytes() + b"".join(h.read_bytes() for h in sorted(csrc.glob("*.h")))
     ver = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout.splitlines()[:1]
     key = hashlib.sha256(src + repr((CFLAGS, ver, _cpu_id(), platform.machine())).encode()).hexdigest()[:16]
     out = cache_dir() / f"{name}-{key}.so"
@@ -62,7 +63,7 @@ def build(name: str, force: bool = False) -> Path:
         objs = []
         for real, sfx in (("float", "_f32"), ("double", "_f64")):
             o = Path(td) / f"{name}{sfx}.o"
-            cmd = [cc, *CFLAGS, f"-DREAL={real}", f"-DSFX={sfx}", "-c", str(CSRC / f"{name}.c"), "-o", str(o)]
+            cmd = [cc, *CFLAGS, f"-DREAL={real}", f"-DSFX={sfx}", "-c", str(csrc / f"{name}.c"), "-o", str(o)]
             r = subprocess.run(cmd, capture_output=True, text=True)
             if r.returncode != 0:
                 raise RuntimeError(f"compiling {name}.c failed:\n{' '.join(cmd)}\n{r.stderr}")
