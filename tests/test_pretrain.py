@@ -49,6 +49,27 @@ def test_unif_loss_cap_counts_only_the_excess():
     assert unif_loss(s.log(), 1.0).item() == pytest.approx(1.0 + 0.75**2)
 
 
+def test_ssim_matches_the_reference_11x11_window():
+    """The separable SSIM equals the reference 3DGS code's (one 11x11 depthwise window per moment)."""
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(1)
+    a = torch.rand(37, 45, 3, dtype=torch.float64, generator=g)
+    b = (a + 0.2 * torch.randn(37, 45, 3, dtype=torch.float64, generator=g)).clamp(0, 1)
+    x = torch.arange(11, dtype=torch.float64) - 5
+    w1 = torch.exp(-x**2 / (2 * 1.5**2))
+    w1 = w1 / w1.sum()
+    w = (w1[:, None] * w1[None, :]).expand(3, 1, 11, 11)
+    X, Y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+    blur = lambda t: F.conv2d(t, w, padding=5, groups=3)  # noqa: E731
+    mx, my = blur(X), blur(Y)
+    sxx, syy, sxy = blur(X * X) - mx**2, blur(Y * Y) - my**2, blur(X * Y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    ref = (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))).mean()
+    assert float(ssim(a, b)) == pytest.approx(float(ref), abs=1e-12)
+    assert float(ssim(a, b)) < 0.9
+
+
 def test_ssim_identity_and_drop():
     a = torch.rand(20, 24, 3)
     assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
