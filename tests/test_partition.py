@@ -397,6 +397,31 @@ def test_style_cleaning_of_colour_outliers():
     assert torch.isin(pick, idx0).all() and "removed_colour_outliers" not in rep0
     with pytest.raises(ValueError, match="colour_k"):
         StyleCleanConfig(colour_k=0)
+    with pytest.raises(ValueError, match="recolour"):
+        StyleCleanConfig(recolour=-1)
+
+
+def test_recolouring_colour_outliers_keeps_every_position():
+    """recolour: the magenta Gaussians set among the pebbles take their neighbours' median colour (close
+    to what was there before), lose their view-dependent terms, and nothing moves or goes."""
+    from wast3d.procedural import style_scene
+    from wast3d.surface import recolour_outliers
+
+    s = style_scene("pebbles", 20000).with_sh_degree(1)
+    g = torch.Generator().manual_seed(0)
+    pick = torch.randperm(len(s), generator=g)[:200]
+    dc = s.sh_dc.clone()
+    dc[pick] = (torch.tensor([1.0, 0.0, 1.0]) - 0.5) / 0.28209479177387814  # magenta
+    rest = torch.randn(s.sh_rest.shape, generator=g) * 0.1
+    odd = GaussianScene(**{**s.tensors(), "sh_dc": dc, "sh_rest": rest}, element=s.element)
+    out, n = recolour_outliers(odd, 16, 0.3)
+    assert n >= 200 and n < 200 + 0.15 * len(s)
+    assert torch.equal(out.means, odd.means) and torch.equal(out.element, odd.element) and len(out) == len(odd)
+    assert (out.rgb[pick] - s.rgb[pick]).norm(dim=1).median() < 0.15  # back near the true colour
+    assert (out.rgb[pick] - odd.rgb[pick]).norm(dim=1).min() > 0.3
+    assert (out.sh_rest[pick] == 0).all() and torch.equal(odd.sh_dc[pick], dc[pick])  # input untouched
+    same, m = recolour_outliers(odd, 16, 10.0)
+    assert m == 0 and torch.equal(same.sh_dc, odd.sh_dc)
 
 
 def test_relief_length_follows_element_size_not_gaussian_count():

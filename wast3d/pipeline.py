@@ -61,6 +61,10 @@ def run_style_clean(scene_ply: Path, out_ply: Path, out_json: Path, params: dict
     report["source"] = str(scene_ply)
     report["labels_from"] = None if labels_from is None else str(labels_from)
     out = scene.subset(idx)
+    if cfg.recolour > 0:
+        from .surface import recolour_outliers
+
+        out, report["recoloured_colour_outliers"] = recolour_outliers(out, cfg.colour_k, cfg.recolour)
     if out.element is not None:
         report["element_share_of_gaussians"] = float((out.element > 0).double().mean())
     write_ply(out_ply, out)

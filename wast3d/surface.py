@@ -69,7 +69,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from .gaussians import GaussianScene, footprint
+from .gaussians import GaussianScene, footprint, rgb_to_sh_dc
 from .geometry import knn
 
 log = logging.getLogger(__name__)
@@ -120,6 +120,7 @@ class StyleCleanConfig:
     min_seen: float = 0.05  # hidden: less than this fraction of a Gaussian is seen in its best view
     below_ground: float = 0.5  # below the ground: centre more than this many relief heights under the ground (0: off)
     colour_outliers: float = 0.0  # colour farther than this (RGB) from the median of its colour_k neighbours (0: off)
+    recolour: float = 0.0  # the same test on the kept Gaussians, which then take that median colour instead of going (0: off)
     colour_k: int = 16
     seed: int = 0
 
@@ -128,8 +129,9 @@ class StyleCleanConfig:
             raise ValueError("style_clean: need 0 <= core_quantile < 0.5, core_margin >= 0, 0 <= min_opacity < 1")
         if self.min_seen < 0 or self.below_ground < 0:
             raise ValueError(f"style_clean: need min_seen >= 0 and below_ground >= 0, got {self.min_seen}, {self.below_ground}")
-        if self.colour_outliers < 0 or self.colour_k < 1:
-            raise ValueError(f"style_clean: need colour_outliers >= 0 and colour_k >= 1, got {self.colour_outliers}, {self.colour_k}")
+        if self.colour_outliers < 0 or self.recolour < 0 or self.colour_k < 1:
+            raise ValueError("style_clean: need colour_outliers >= 0, recolour >= 0 and colour_k >= 1, got "
+                             f"{self.colour_outliers}, {self.recolour}, {self.colour_k}")
 
 
 CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
@@ -546,15 +548,39 @@ def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tens
     return idx, _kept(report, idx, n, "style cleaning")
 
 
+def _colour_deviation(scene: GaussianScene, idx: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For the Gaussians ``idx`` [M]: the median RGB [M, 3] of each one's k nearest others among them
+    (positions), and the RGB distance [M] of its own colour from it."""
+    _, nb = knn(scene.means[idx], scene.means[idx], k, exclude_self=True)
+    rgb = scene.rgb.detach().clamp(0, 1)[idx]
+    med = rgb[nb].median(dim=1).values
+    return med, (rgb - med).norm(dim=1)
+
+
 def _colour_outliers(scene: GaussianScene, keep: torch.Tensor, k: int, limit: float, report: dict) -> None:
     """Drop kept Gaussians whose RGB lies more than ``limit`` from the median RGB of their k nearest
     kept neighbours (positions)."""
     idx = keep.nonzero().squeeze(1)
     if len(idx) <= k:
         return
-    _, nb = knn(scene.means[idx], scene.means[idx], k, exclude_self=True)
-    rgb = scene.rgb.detach().clamp(0, 1)[idx]
-    dev = (rgb - rgb[nb].median(dim=1).values).norm(dim=1)
+    _, dev = _colour_deviation(scene, idx, k)
     out = torch.zeros_like(keep)
     out[idx[dev > limit]] = True
     _drop(keep, out, report, "removed_colour_outliers")
+
+
+def recolour_outliers(scene: GaussianScene, k: int, limit: float) -> tuple[GaussianScene, int]:
+    """``scene`` with each Gaussian whose RGB lies more than ``limit`` from the median RGB of its k
+    nearest neighbours recoloured to that median (DC term; its view-dependent terms zeroed), and how
+    many were. Unlike dropping them (``colour_outliers``) every position stays, so the patch's relief,
+    its element labels and what registration measures on it do not change: a trained patch's magenta,
+    blue and green Gaussians inside brown and grey pebbles are ones its views barely constrain, and
+    the colour their neighbours show is the best guess of what the surface there looks like."""
+    if len(scene) <= k:
+        return scene, 0
+    med, dev = _colour_deviation(scene, torch.arange(len(scene)), k)
+    odd = dev > limit
+    out = scene.clone()
+    out.sh_dc[odd] = rgb_to_sh_dc(med[odd]).to(out.sh_dc)
+    out.sh_rest[odd] = 0
+    return out, int(odd.sum())
