@@ -1,11 +1,13 @@
 """Pretraining benchmark: held-out PSNR against wall time, and the effect of the regularizers.
 
-    python benchmarks/pretrain.py lego  [--iterations 3000] [--eval-every 500]
+    python benchmarks/pretrain.py lego  [--iterations 3000] [--eval-every 500] [--previous REV]
     python benchmarks/pretrain.py regularizers [--style pebbles] [--iterations 1500]
 
 ``lego``: trains on ``../shared/data/nerf_synthetic_lego_200`` (every 8th view held out, white
 background) and evaluates on the held-out views every ``--eval-every`` steps; the evaluation time is
 not counted as training time. Rows: step, training seconds, Gaussians, held-out PSNR / SSIM.
+``--previous REV`` first runs the same benchmark in a git worktree of revision REV (its own code and
+kernels) and adds its rows (``version`` REV against ``current``), so the two compare in one run.
 ``regularizers``: renders a procedural style scene into 48 posed views (200x200), trains with and
 without eq. 1 + eq. 2, and reports quantiles of anisotropy max(s)/min(s) and of the largest scale, and
 the held-out PSNR of each. Writes ``results/benchmarks/pretrain.csv`` / ``pretrain_regularizers.csv``.
@@ -14,6 +16,7 @@ the held-out PSNR of each. Writes ``results/benchmarks/pretrain.csv`` / ``pretra
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -24,6 +27,29 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import OUT, ROOT  # noqa: E402
 
 LEGO = ROOT.parent / "shared" / "data" / "nerf_synthetic_lego_200"
+
+
+def previous_rows(a):
+    """This benchmark's lego rows at git revision ``a.previous``, run in a temporary worktree."""
+    import subprocess
+
+    import pandas as pd
+
+    with tempfile.TemporaryDirectory(prefix="wast3d-prev-") as td:
+        wt = Path(td) / "tree"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(wt), a.previous], check=True,
+                       capture_output=True)
+        try:
+            (wt.parent / "shared").symlink_to(ROOT.parent / "shared")  # the lego beside the worktree
+            subprocess.run([sys.executable, "benchmarks/pretrain.py", "lego", "--iterations", str(a.iterations),
+                            "--eval-every", str(a.eval_every), "--sh-degree", str(a.sh_degree),
+                            "--max-gaussians", str(a.max_gaussians)], cwd=wt, check=True,
+                           env={**os.environ, "PYTHONPATH": str(wt)})
+            prev = pd.read_csv(wt / "results" / "benchmarks" / "pretrain.csv")
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
+    prev.insert(0, "version", a.previous)
+    return prev
 
 
 def lego(a) -> None:
@@ -47,6 +73,9 @@ def lego(a) -> None:
                      "test_psnr": ev["psnr"], "test_ssim": ev["ssim"]})
     df = pd.DataFrame(rows)
     df["threads"] = torch.get_num_threads()
+    df.insert(0, "version", "current")
+    if a.previous:
+        df = pd.concat([previous_rows(a), df], ignore_index=True)
     out = OUT / "pretrain.csv"
     out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(out, index=False)
@@ -96,6 +125,7 @@ def main() -> None:
     ap.add_argument("--sh-degree", type=int, default=0)
     ap.add_argument("--max-gaussians", type=int, default=200_000)
     ap.add_argument("--style", default="pebbles")
+    ap.add_argument("--previous", help="lego: also run this git revision's code (a worktree) in the same run")
     a = ap.parse_args()
     torch.set_flush_denormal(True)
     {"lego": lego, "regularizers": regularizers}[a.what](a)
