@@ -35,12 +35,15 @@ def _rss(field: str) -> float:
 
 def previous_kernels(rev: str) -> None:
     """Make this process's native kernels those of git revision ``rev`` (built from its csrc)."""
+    import atexit
     import ctypes
+    import shutil
     import tempfile
 
     from wast3d import _native
 
     src = Path(tempfile.mkdtemp(prefix="wast3d-csrc-"))
+    atexit.register(shutil.rmtree, src, ignore_errors=True)
     files = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", f"{rev}:wast3d/csrc"],
                            capture_output=True, text=True, check=True).stdout.split()
     for f in files:

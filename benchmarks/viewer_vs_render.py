@@ -29,7 +29,7 @@ def main() -> None:
     import imageio.v3 as iio
     import pandas as pd
 
-    from test_viewer import _free_port, _screenshot_when  # the browser test's DevTools client
+    from test_viewer import _free_port, _lower_half_drawn, _screenshot_when, _settled  # the browser test's
     from wast3d.formats import read_scene
     from wast3d.rendering import rasterize
     from wast3d.viewer import placed, serve, view_camera
@@ -47,17 +47,10 @@ def main() -> None:
         port = _free_port()
         server = serve([path], port=port)
         try:
-            drawn = lambda img: (np.abs(img[img.shape[0] // 2:].astype(int) - 255).sum(-1) > 30).mean() > 0.02  # noqa: E731
+            drawn = _lower_half_drawn(0.02)
             first = _screenshot_when(f"http://127.0.0.1:{port}", a.browser, drawn, timeout=300)
-            last = {}
-
-            def settled(img):
-                same = "img" in last and last["img"].shape == img.shape and np.abs(last["img"].astype(int) - img).mean() < 0.2
-                last["img"] = img
-                return drawn(img) and same
-
             t0 = time.time()
-            page = _screenshot_when(f"http://127.0.0.1:{port}", a.browser, settled, timeout=600)
+            page = _screenshot_when(f"http://127.0.0.1:{port}", a.browser, _settled(drawn), timeout=600)
             seconds = time.time() - t0
         finally:
             server.stop()

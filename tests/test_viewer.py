@@ -94,6 +94,25 @@ def _screenshot_when(url: str, browser: str, ready, timeout: float = 90.0) -> np
         proc.kill()
 
 
+def _lower_half_drawn(share: float):
+    """A screenshot predicate: more than ``share`` of the page's lower half (below viser's panels) is
+    not white."""
+    return lambda img: (np.abs(img[img.shape[0] // 2:].astype(int) - 255).sum(-1) > 30).mean() > share
+
+
+def _settled(drawn):
+    """A screenshot predicate for :func:`_screenshot_when`: ``drawn(img)`` and the picture equal to the
+    one polled before it (viser's fade-in over)."""
+    last = {}
+
+    def ready(img):
+        same = "img" in last and last["img"].shape == img.shape and np.abs(last["img"].astype(int) - img).mean() < 0.2
+        last["img"] = img
+        return drawn(img) and same
+
+    return ready
+
+
 def _stripes() -> "GaussianScene":
     """A card of colour stripes running away from the viewer's camera (dark brown, near-black, grey,
     near-white, red, green, blue, and a translucent sparse stripe), so that every stripe reaches the
@@ -145,16 +164,7 @@ def test_viewer_page_shows_what_the_renderer_shows(tmp_path):
             except OSError:
                 assert server.poll() is None, server.stdout.read()
                 time.sleep(0.5)
-        last = {}
-
-        def settled(img):  # splats drawn in the lower half, and the same picture as 2 s before
-            h = img.shape[0]
-            drawn = (np.abs(img[h // 2:].astype(int) - 255).sum(-1) > 30).mean() > 0.05
-            same = "img" in last and last["img"].shape == img.shape and np.abs(last["img"].astype(int) - img).mean() < 0.2
-            last["img"] = img
-            return drawn and same
-
-        page = _screenshot_when(f"http://127.0.0.1:{port}", browser, settled, timeout=240)
+        page = _screenshot_when(f"http://127.0.0.1:{port}", browser, _settled(_lower_half_drawn(0.05)), timeout=240)
     finally:
         server.terminate()
         server.wait(timeout=10)
