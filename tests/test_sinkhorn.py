@@ -315,3 +315,29 @@ def test_the_kernels_exp_is_accurate_on_its_domain():
     ref = torch.exp(x.double())
     assert float(((out.double() - ref) / ref).abs().max()) < 2e-7
     assert float(out[-1]) == 1.0 and float(out[-3]) > torch.finfo(torch.float32).tiny
+
+
+def test_displacement_smoothing_along_the_up_keeps_the_rest_of_the_step():
+    from wast3d.geometry import knn
+    from wast3d.stylize import ClusterPair, StylizeConfig, smooth_displacements, stylize_clusters
+
+    g = torch.Generator().manual_seed(0)
+    pos = torch.rand(200, 3, generator=g)
+    _, nb = knn(pos, pos, 8)
+    step = torch.randn(200, 3, generator=g, dtype=torch.float64)
+    up = torch.tensor([0.0, 0.0, 2.0])  # not unit: normalized by the caller, here by hand
+    u = up / up.norm()
+    out = smooth_displacements(step, nb, 32, u)
+    # across the up: untouched; along it: the same diffusion as the whole-step smoothing
+    assert torch.equal(out[:, :2], step[:, :2])
+    whole = smooth_displacements(step, nb, 32)
+    assert torch.allclose(out[:, 2], whole[:, 2])
+    # the smoothing removes the along-up noise (a relief kept) and leaves a constant step as it is
+    assert out[:, 2].std() < 0.3 * step[:, 2].std()
+    const = torch.ones(200, 3, dtype=torch.float64)
+    assert torch.allclose(smooth_displacements(const, nb, 8, u), const)
+    with pytest.raises(ValueError, match="smooth_axis"):
+        StylizeConfig(smooth_axis="sideways")
+    pair = ClusterPair(pos.float(), torch.rand(200, 3), pos.float() + 0.1, torch.rand(200, 3), 0.3)
+    with pytest.raises(ValueError, match="up direction"):
+        stylize_clusters([pair], StylizeConfig(iterations=1, smooth_passes=2, smooth_axis="up"))

@@ -62,6 +62,7 @@ FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
 SINKHORN_DEFAULTS = {"blur": 0.3, "tol": 1e-3}
 BLUR_UNITS = ("cluster", "scene")
 MASSES = ("uniform", "area")
+SMOOTH_AXES = ("all", "up")
 
 
 @dataclass
@@ -83,6 +84,7 @@ class StylizeConfig:
     masses: str = "area"  # "area": each Gaussian's mass is its footprint (see footprint_masses); "uniform"
     smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
     smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
+    smooth_axis: str = "all"  # "all": the whole step is smoothed; "up": only its component along the style's up
     sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
 
     def __post_init__(self):
@@ -96,6 +98,8 @@ class StylizeConfig:
             raise ValueError(f"stylize.masses must be one of {MASSES}, got '{self.masses}'")
         if self.smooth_k < 1 or self.smooth_passes < 0:
             raise ValueError(f"stylize: need smooth_k >= 1 and smooth_passes >= 0 (got {self.smooth_k}, {self.smooth_passes})")
+        if self.smooth_axis not in SMOOTH_AXES:
+            raise ValueError(f"stylize.smooth_axis must be one of {SMOOTH_AXES}, got '{self.smooth_axis}'")
         if self.batch < 0:
             raise ValueError(f"stylize.batch must be >= 0 (0: every cluster in one solve), got {self.batch}")
         if self.blur_units not in BLUR_UNITS:
@@ -188,14 +192,25 @@ def neighbour_graph(ys: list[torch.Tensor], k: int) -> torch.Tensor:
     return torch.cat(out) if out else torch.zeros(0, k, dtype=torch.long)
 
 
-def smooth_displacements(g: torch.Tensor, nb: torch.Tensor, passes: int) -> torch.Tensor:
+def smooth_displacements(g: torch.Tensor, nb: torch.Tensor, passes: int, up: torch.Tensor | None = None) -> torch.Tensor:
     """g: [M, D] per-Gaussian step directions, nb: [M, k] neighbours -> g averaged over the neighbours
     ``passes`` times (a discrete diffusion of the displacement field over the style's own surface, of
     radius about sqrt(passes) neighbourhoods). Gaussians of one element then take one displacement and
-    move together, as the Sinkhorn flow alone does only at scales above gamma."""
+    move together, as the Sinkhorn flow alone does only at scales above gamma.
+
+    ``up`` [3] (unit, D = 3): only the component along it, ``h = g . up``, is averaged and the rest
+    kept, ``g' = g - h up + smooth(h) up``: an element's Gaussians keep their heights relative to each
+    other (its relief) while each still moves freely across the surface."""
+    if up is None:
+        for _ in range(passes):
+            g = g[nb].mean(1)
+        return g
+    u = up.to(g)
+    h = g @ u
+    hs = h
     for _ in range(passes):
-        g = g[nb].mean(1)
-    return g
+        hs = hs[nb].mean(1)
+    return g + (hs - h)[:, None] * u
 
 
 def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tensor, y_rgb: torch.Tensor,
@@ -205,7 +220,8 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
     return stylize_clusters([ClusterPair(x_pos, x_rgb, y_pos, y_rgb, cfg.sinkhorn.blur)], cfg)[0]
 
 
-def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False) -> list[ClusterResult]:
+def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False,
+                     up: torch.Tensor | None = None) -> list[ClusterResult]:
     """Terms of eq. 9 optimized together: one packed (ragged) Sinkhorn solve per step over all of them
     (:func:`wast3d.sinkhorn.sinkhorn_batched`), each cluster normalized by :func:`normalize_pair`.
 
@@ -252,6 +268,13 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     pot = None
     araps = [_ArapState(yn, cfg.arap_k) for yn in ys] if cfg.loss == "arap" else None
     nb = neighbour_graph(ys, cfg.smooth_k).to(dev) if cfg.smooth_passes else None
+    if nb is not None and cfg.smooth_axis == "up":
+        if up is None:
+            raise ValueError("stylize: smooth_axis 'up' needs the style's up direction")
+        up = torch.as_tensor(up, dtype=torch.float64)
+        up = (up / up.norm()).to(dev, dt)
+    else:
+        up = None
     steps = tqdm(range(cfg.iterations), desc=f"stylize steps ({len(pairs)} clusters)", mininterval=2.0,
                  disable=not progress)
     for it in steps:
@@ -278,7 +301,7 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
             if dC.grad is not None:
                 dC.grad.mul_(flow)
         if nb is not None:
-            Y.grad = smooth_displacements(Y.grad, nb, cfg.smooth_passes)
+            Y.grad = smooth_displacements(Y.grad, nb, cfg.smooth_passes, up)
         bad = ~torch.isfinite(Y.grad).all(1)
         if dC.grad is not None:
             bad |= ~torch.isfinite(dC.grad).all(1)
@@ -306,7 +329,8 @@ def packed_masses(ws: list[torch.Tensor | None], sizes: torch.Tensor, dev, dt) -
     return torch.cat(parts).to(dev, dt)
 
 
-def stylize_in_batches(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False) -> list[ClusterResult]:
+def stylize_in_batches(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False,
+                       up: torch.Tensor | None = None) -> list[ClusterResult]:
     """:func:`stylize_clusters` over groups of ``cfg.batch`` pairs (0: all in one group)."""
     from tqdm import tqdm
 
@@ -314,7 +338,7 @@ def stylize_in_batches(pairs: list[ClusterPair], cfg: StylizeConfig, progress: b
     batches = range(0, len(pairs), size)
     results: list[ClusterResult] = []
     for b0 in tqdm(batches, desc="stylize cluster batches", disable=not progress or len(batches) == 1):
-        results += stylize_clusters(pairs[b0:b0 + size], cfg, progress=progress and len(batches) == 1)
+        results += stylize_clusters(pairs[b0:b0 + size], cfg, progress=progress and len(batches) == 1, up=up)
     return results
 
 
@@ -384,7 +408,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
                                  x_w=None if c_mass is None else c_mass[m], y_w=None if s_mass is None else s_mass[sel]))
     if not pairs:
         raise ValueError("stylize: no non-empty cluster")
-    results = stylize_in_batches(pairs, cfg, progress)
+    results = stylize_in_batches(pairs, cfg, progress, up=reg.style_up)
     parts, before_parts, labs, curves, secs = [], [], [], [], []
     for (i, sel, sub), res in zip(todo, results):
         if res.losses and cfg.loss == "sinkhorn" and min(res.losses) < -1e-6 * abs(res.losses[0]):
