@@ -3,6 +3,7 @@
 
 import copy
 import json
+import os
 import re
 import subprocess
 import sys
@@ -92,6 +93,33 @@ def test_stage_parameters_survive_the_shell(tmp_path):
     argv = shlex.split(cmds[0].split(" 2> ")[0])
     params = json.loads(argv[argv.index("--params") + 1])
     assert params["clip"]["checkpoint"] == str(ckpt)
+
+
+FAKE_CONDA = """#!/bin/sh
+case "$*" in
+  "--version") echo "conda 24.11.0";;
+  "info --json") echo '{"conda_prefix": "%(d)s", "envs_dirs": ["%(d)s/envs"], "platform": "linux-64", "root_prefix": "%(d)s"}';;
+  "config --get channel_priority --json") echo '{"get": {"channel_priority": "strict"}}';;
+  *) exit 1;;
+esac
+"""
+
+
+def test_conda_deployment_runs_the_stages_in_the_declared_environment(tmp_path, monkeypatch):
+    """With `--sdm conda` every stage runs `python -m wast3d` from workflow/envs/wast3d.yaml, not the
+    interpreter that runs Snakemake (a stand-in `conda` answers Snakemake's checks; nothing installs)."""
+    fake = tmp_path / "bin" / "conda"
+    fake.parent.mkdir()
+    fake.write_text(FAKE_CONDA % {"d": tmp_path / "conda"})
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake.parent}{os.pathsep}{os.environ['PATH']}")
+    wd = tmp_path / "wd"
+    r = snake(wd, "-n", "-p", "--sdm", "conda", config=copy.deepcopy(TINY))
+    cmds = re.findall(r"(\S+) -m wast3d ", r.stdout)
+    assert cmds and set(cmds) == {"python"}, set(cmds)
+    assert "envs/wast3d.yaml" in r.stdout + r.stderr
+    plain = snake(wd, "-n", "-p", config=copy.deepcopy(TINY))
+    assert f"{sys.executable} -m wast3d" in plain.stdout
 
 
 def test_reference_errors(tmp_path):

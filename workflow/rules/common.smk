@@ -13,8 +13,18 @@ from snakemake.utils import validate
 validate(config, schema="../schemas/config.schema.yaml")
 
 RESULTS = "results"
-# the interpreter running Snakemake runs the stages too (no PATH set-up needed, same on cluster nodes)
-WAST3D = f"{sys.executable} -m wast3d"
+
+
+def uses_conda() -> bool:
+    """Whether Snakemake deploys the rules' `conda:` environment (`--sdm conda`)."""
+    from snakemake.settings.types import DeploymentMethod
+
+    return DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method
+
+
+# the interpreter running Snakemake runs the stages too (no PATH set-up needed, same on cluster nodes);
+# with `--sdm conda`, the `python` of the rule's environment (workflow/envs/wast3d.yaml)
+WAST3D = "python -m wast3d" if uses_conda() else f"{sys.executable} -m wast3d"
 # Threads: each job passes its `threads` to the command (`wast3d --threads N`: torch, the native
 # kernels and the KD-trees use exactly N, and OpenMP threads sleep when idle), so jobs that share a
 # machine never oversubscribe it. The two stages that dominate the run time (Sinkhorn, pretraining)
