@@ -341,3 +341,25 @@ def test_displacement_smoothing_along_the_up_keeps_the_rest_of_the_step():
     pair = ClusterPair(pos.float(), torch.rand(200, 3), pos.float() + 0.1, torch.rand(200, 3), 0.3)
     with pytest.raises(ValueError, match="up direction"):
         stylize_clusters([pair], StylizeConfig(iterations=1, smooth_passes=2, smooth_axis="up"))
+
+
+def test_transport_masses_per_side():
+    """area: both sides by footprint; style-area: the style by footprint, the content one per point."""
+    from wast3d.gaussians import GaussianScene
+    from wast3d.stylize import footprint_masses, transport_masses
+
+    g = torch.Generator().manual_seed(1)
+
+    def scene(n):
+        return GaussianScene(means=torch.rand(n, 3, generator=g), quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
+                             log_scales=torch.randn(n, 3, generator=g) - 3, opacity_logits=torch.randn(n, generator=g),
+                             sh_dc=torch.rand(n, 3, generator=g), sh_rest=torch.zeros(n, 0, 3))
+
+    c, s = scene(50), scene(70)
+    cm, sm = transport_masses(c, s, "area")
+    assert torch.equal(cm, footprint_masses(c)) and torch.equal(sm, footprint_masses(s))
+    cm, sm = transport_masses(c, s, "style-area")
+    assert cm is None and torch.equal(sm, footprint_masses(s))
+    assert transport_masses(c, s, "uniform") == (None, None)
+    with pytest.raises(ValueError, match="masses"):
+        transport_masses(c, s, "volume")

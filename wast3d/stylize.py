@@ -61,7 +61,7 @@ FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
 # paper's 0.05: docs/method.md, stage 5), potentials converged to 1e-3 eps at every step
 SINKHORN_DEFAULTS = {"blur": 0.3, "tol": 1e-3}
 BLUR_UNITS = ("cluster", "scene")
-MASSES = ("uniform", "area")
+MASSES = ("uniform", "area", "style-area")
 SMOOTH_AXES = ("all", "up")
 
 
@@ -81,7 +81,8 @@ class StylizeConfig:
     device: str = "auto"  # "auto": CUDA when available
     blur_units: str = "cluster"  # "cluster": gamma relative to each cluster's radius; "scene": see above
     batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
-    masses: str = "area"  # "area": each Gaussian's mass is its footprint (see footprint_masses); "uniform"
+    masses: str = "area"  # "area": each Gaussian's mass is its footprint (see footprint_masses); "uniform";
+    # "style-area": the style's by footprint, the content's one per point
     smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
     smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
     smooth_axis: str = "all"  # "all": the whole step is smoothed; "up": only its component along the style's up
@@ -174,8 +175,22 @@ def footprint_masses(scene: GaussianScene) -> torch.Tensor:
     weigh differently, and the flow moves Gaussians from the first kind of region to the second to
     even out the count: elements tear (the procedural styles, uniform discs at one spacing, never
     showed it). With masses by area both sides are distributions of visible surface, whatever the
-    Gaussians' sizes."""
+    Gaussians' sizes.
+
+    Where it fails: a trained *capture* as content keeps large Gaussians behind or under its visible
+    surface (the guitar's body), and by area they hold much of a cluster's mass, so the flow pulls the
+    style into the body (``masses: style-area`` weighs the content's points one each and the style's by
+    footprint)."""
     return footprint(scene.scales, scene.opacities).clamp_min(1e-30)
+
+
+def transport_masses(content: GaussianScene, style: GaussianScene, masses: str) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The content's [N] and the style's [M] masses for ``stylize.masses`` (None: one per Gaussian)."""
+    if masses not in MASSES:
+        raise ValueError(f"stylize.masses must be one of {MASSES}, got '{masses}'")
+    c_mass = footprint_masses(content) if masses == "area" else None
+    s_mass = footprint_masses(style) if masses in ("area", "style-area") else None
+    return c_mass, s_mass
 
 
 def neighbour_graph(ys: list[torch.Tensor], k: int) -> torch.Tensor:
@@ -391,8 +406,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()
-    c_mass = footprint_masses(content) if cfg.masses == "area" else None
-    s_mass = footprint_masses(style) if cfg.masses == "area" else None
+    c_mass, s_mass = transport_masses(content, style, cfg.masses)
     todo, pairs = [], []
     for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
