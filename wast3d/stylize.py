@@ -81,8 +81,8 @@ class StylizeConfig:
     device: str = "auto"  # "auto": CUDA when available
     blur_units: str = "cluster"  # "cluster": gamma relative to each cluster's radius; "scene": see above
     batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
-    masses: str = "area"  # "area": each Gaussian's mass is its footprint (see footprint_masses); "uniform";
-    # "style-area": the style's by footprint, the content's one per point
+    masses: str = "style-area"  # the style's Gaussians weigh their footprint (footprint_masses), the content's
+    # points one each; "area": both by footprint; "uniform": both one each
     smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
     smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
     smooth_axis: str = "all"  # "all": the whole step is smoothed; "up": only its component along the style's up
