@@ -216,16 +216,13 @@ def smooth_displacements(g: torch.Tensor, nb: torch.Tensor, passes: int, up: tor
     ``up`` [3] (unit, D = 3): only the component along it, ``h = g . up``, is averaged and the rest
     kept, ``g' = g - h up + smooth(h) up``: an element's Gaussians keep their heights relative to each
     other (its relief) while each still moves freely across the surface."""
-    if up is None:
-        for _ in range(passes):
-            g = g[nb].mean(1)
-        return g
-    u = up.to(g)
-    h = g @ u
-    hs = h
+    if up is not None:
+        u = up.to(g)
+        h = (g @ u)[:, None]
+        return g + (smooth_displacements(h, nb, passes) - h) * u
     for _ in range(passes):
-        hs = hs[nb].mean(1)
-    return g + (hs - h)[:, None] * u
+        g = g[nb].mean(1)
+    return g
 
 
 def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tensor, y_rgb: torch.Tensor,
