@@ -363,3 +363,43 @@ def test_transport_masses_per_side():
     assert transport_masses(c, s, "uniform") == (None, None)
     with pytest.raises(ValueError, match="masses"):
         transport_masses(c, s, "volume")
+
+
+def test_parts_move_rigidly_and_follow_colour_edges():
+    """stylize.parts: each part's Gaussians take their part's mass-weighted mean step (a translation
+    per part), parts in one packed solve stay apart, and the parts' k-means cuts at colour edges."""
+    from wast3d.stylize import (ClusterPair, StylizeConfig, packed_parts, part_means, style_parts,
+                                stylize_clusters)
+
+    g = torch.Generator().manual_seed(0)
+    step = torch.randn(6, 3, generator=g, dtype=torch.float64)
+    part = torch.tensor([0, 0, 1, 1, 1, 2])
+    w = torch.tensor([1.0, 3.0, 1.0, 1.0, 2.0, 5.0], dtype=torch.float64)
+    out = part_means(step, part, w)
+    assert torch.allclose(out[0], (step[0] + 3 * step[1]) / 4) and torch.equal(out[0], out[1])
+    assert torch.allclose(out[2], (step[2] + step[3] + 2 * step[4]) / 4)
+    assert torch.equal(out[5], step[5])  # a part of one Gaussian moves freely
+    assert torch.equal(packed_parts([torch.tensor([4, 4, 9]), None, torch.tensor([1, 1])], torch.tensor([3, 2, 2])),
+                       torch.tensor([0, 0, 1, 2, 3, 4, 4]))
+    assert packed_parts([None, None], torch.tensor([2, 3])) is None
+    # two touching squares of different colours on a plane, one part across (size = the pair's width):
+    # by position alone a part straddles the edge, with the colour term the border is the colour edge
+    xy = torch.rand(2000, 2, generator=g) * torch.tensor([2.0, 1.0])
+    pos = torch.cat([xy, 0.01 * torch.rand(2000, 1, generator=g)], 1)
+    red = xy[:, 0] < 0.6  # off the middle, where positions alone would cut
+    rgb = torch.where(red[:, None], torch.tensor([1.0, 0, 0]), torch.tensor([0, 0, 1.0]))
+    lab = style_parts(pos, rgb, "z", 2.0, colour=1.0)
+    assert all(len(torch.unique(red[lab == p])) == 1 for p in torch.unique(lab))
+    assert torch.equal(lab, style_parts(pos, rgb, "z", 2.0, colour=1.0))  # deterministic
+    # in the flow, every part's Gaussians keep their offsets to each other (one translation per part)
+    y = torch.rand(300, 3, generator=g)
+    parts = (y[:, 0] * 3).long().clamp(max=2)
+    pr = ClusterPair(torch.rand(200, 3, generator=g) + 0.3, torch.rand(200, 3, generator=g), y, torch.rand(300, 3),
+                     0.3, y_part=parts)
+    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts=1.0))[0]
+    moved = res.positions.double() - y.double()
+    for p in range(3):
+        d = moved[parts == p]
+        assert float((d - d[0]).abs().max()) < 1e-5 and float(d[0].norm()) > 1e-3
+    with pytest.raises(ValueError, match="parts"):
+        StylizeConfig(parts=-1.0)
