@@ -657,6 +657,33 @@ def test_coverage_counts_holes_where_the_content_is():
         coverage(ref[:1], ref)
 
 
+def test_coverage_at_the_element_scale_closes_gaps_not_holes():
+    """coverage_element: gaps narrower than an element (a style's own gaps between its elements) are
+    closed before counting, a hole larger than an element (a lost part of the content) still counts."""
+    from wast3d.image_metrics import close_mask, coverage, coverage_at_scale, projected_radii
+
+    ref = torch.zeros(1, 64, 64)
+    ref[:, 8:56, 8:56] = 1.0
+    stripes = ref.clone()
+    stripes[:, :, 10:56:6] = 0.0  # 1-pixel gaps every 6 pixels: an element 5 px wide
+    assert coverage(stripes, ref) < 0.85
+    assert coverage_at_scale(stripes, ref, [2.5]) == 1.0  # radius half an element: the gaps close
+    assert coverage_at_scale(stripes, ref, [0.5]) == coverage(stripes, ref)  # under a pixel: nothing closes
+    holed = stripes.clone()
+    holed[:, 20:40, 20:40] = 0.0  # a hole 4 elements across
+    closed = coverage_at_scale(holed, ref, [2.5])
+    assert closed == pytest.approx(1 - 400 / 48**2, abs=0.02)
+    # the closing adds nothing beyond the mask's own outline (the frame's edge is background)
+    m = torch.zeros(20, 20, dtype=torch.bool)
+    m[5:15, 0:10] = True
+    assert torch.equal(close_mask(m, 3.0), m)
+    # the radius: half the length in pixels at the centre's depth
+    cam = {"world_to_cam": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4.0], [0, 0, 0, 1]], "fx": 100.0}
+    assert projected_radii([cam], [0.0, 0.0, 1.0], 0.2) == [pytest.approx(2.0)]
+    with pytest.raises(ValueError, match="radii"):
+        coverage_at_scale(ref, ref, [1.0, 2.0])
+
+
 def test_loss_picture_of_a_run_without_steps(tmp_path):
     """The positive control 'selected' runs stylize with iterations: 0 (no loss curves at all)."""
     from wast3d.figures import loss_curves_picture

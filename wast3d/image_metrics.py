@@ -35,6 +35,7 @@ alpha is also > 0.5, over the same views: 1 = no holes where the content is.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -165,3 +166,50 @@ def coverage(result_alpha: torch.Tensor, reference_alpha: torch.Tensor, threshol
     fg = reference_alpha > threshold
     n = int(fg.sum())
     return 1.0 if n == 0 else float((result_alpha[fg] > threshold).double().mean())
+
+
+def close_mask(mask: torch.Tensor, radius: float) -> torch.Tensor:
+    """Morphological closing (dilation, then erosion) of a [H, W] bool mask by a disc of ``radius``
+    pixels: every gap narrower than the disc's diameter is filled, nothing outside the mask's convex
+    parts is added. Pixels beyond the frame count as background."""
+    r = int(math.floor(radius))
+    if r < 1:
+        return mask.clone()
+    yy, xx = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing="ij")
+    disc = ((xx * xx + yy * yy) <= radius * radius).double()[None, None]
+    m = F.pad(mask.double()[None, None], (2 * r,) * 4)
+    dilated = F.conv2d(m, disc) > 0.5  # [H + 2r, W + 2r]
+    holes = F.conv2d(F.pad((~dilated).double(), (r,) * 4), disc)
+    return (holes < 0.5)[0, 0, r:-r, r:-r]
+
+
+def projected_radii(cameras: list[dict], centre, length: float) -> list[float]:
+    """Half of ``length`` (world units) in pixels at ``centre`` [3], per camera (``world_to_cam`` [4, 4]
+    and ``fx``, as the renders' ``render.json`` lists them): ``0.5 fx length / z``."""
+    c = torch.as_tensor(centre, dtype=torch.float64)
+    out = []
+    for cam in cameras:
+        w2c = torch.as_tensor(cam["world_to_cam"], dtype=torch.float64)
+        z = float(w2c[2, :3] @ c + w2c[2, 3])
+        if not z > 0:
+            raise ValueError(f"coverage: the content's centre is behind a camera (z = {z:g})")
+        out.append(0.5 * float(cam["fx"]) * length / z)
+    return out
+
+
+def coverage_at_scale(result_alpha: torch.Tensor, reference_alpha: torch.Tensor, radii, threshold: float = 0.5) -> float:
+    """:func:`coverage` with the result's gaps narrower than ``2 radii[v]`` pixels closed first
+    (:func:`close_mask`, per view v). With the radius half a style element (``coverage_element``), a
+    result whose elements leave the style's own gaps between them (the trained pebbles' sand between
+    the stones, a weave's holes) scores as one without gaps, while a hole larger than an element (a
+    part of the content lost) still counts. result_alpha, reference_alpha: [V, H, W]; radii: [V]."""
+    if result_alpha.shape != reference_alpha.shape:
+        raise ValueError(f"coverage: renders differ in shape {list(result_alpha.shape)} vs {list(reference_alpha.shape)}")
+    if len(radii) != len(result_alpha):
+        raise ValueError(f"coverage: {len(radii)} radii for {len(result_alpha)} views")
+    fg = reference_alpha > threshold
+    n = int(fg.sum())
+    if n == 0:
+        return 1.0
+    covered = sum(int((close_mask(a > threshold, float(r)) & f).sum()) for a, r, f in zip(result_alpha, radii, fg))
+    return covered / n

@@ -316,6 +316,23 @@ def coarse_shape(result, content, texture_reference: Path, cfg) -> dict:
     return {"coarse_chamfer": value, "coarse_length": float(length), "coarse_status": f"computed, length from {source}"}
 
 
+def element_coverage(frames: torch.Tensor, reference: torch.Tensor, content, content_render: Path,
+                     length: float | None) -> dict:
+    """``coverage_element``: :func:`~wast3d.image_metrics.coverage_at_scale` with the result's gaps
+    narrower than one style element closed (``length``: the coarse Chamfer's element length, content
+    units; the radius in pixels per view at the content's centre, cameras from ``content_render``)."""
+    from .image_metrics import coverage_at_scale, projected_radii
+
+    if length is None:
+        return {"coverage_element": None}
+    info = read_json(Path(content_render) / "render.json")
+    cams = info.get("cameras")
+    if not isinstance(cams, list) or len(cams) < len(frames):
+        raise ValueError(f"{content_render}/render.json: 'cameras' must list the {len(frames)} frames' cameras")
+    radii = projected_radii(cams[:len(frames)], content.means.double().median(0).values, length)
+    return {"coverage_element": coverage_at_scale(frames[..., 3], reference[..., 3], radii)}
+
+
 def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, style_frames: torch.Tensor,
                       texture_reference: Path, stylize_npz: Path | None, cfg) -> dict:
     """The element metrics of one result (:mod:`wast3d.elements`): ``element_share`` of the result's
@@ -387,6 +404,7 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
         raise ValueError(f"{result_render}: frames {list(frames.shape)} differ from the content render "
                          f"{content_render} {list(reference.shape)}; render both with the same settings")
     out["coverage"] = coverage(frames[..., 3], reference[..., 3])
+    out.update(element_coverage(frames, reference, content, content_render, out["coarse_length"]))
     texture_frames = read_frames(texture_reference)  # a missing or corrupt reference is an error, not a result
     out.update(evaluate_elements(result, style, frames, result_render, texture_frames, texture_reference, stylize_npz,
                                  ecfg))
