@@ -64,6 +64,7 @@ SINKHORN_DEFAULTS = {"blur": 0.3, "tol": 1e-3}
 BLUR_UNITS = ("cluster", "scene")
 MASSES = ("uniform", "area", "style-area")
 SMOOTH_AXES = ("all", "up")
+PART_MOTIONS = ("translation", "rigid")
 
 
 @dataclass
@@ -90,6 +91,7 @@ class StylizeConfig:
     parts: float = 0.0  # piecewise-rigid flow: the style cut into parts this many relief lengths across, each
     # moving by its Gaussians' mass-weighted mean step (0: off); see style_parts
     parts_colour: float = 1.0  # the colour's weight in the parts' k-means (1: a colour step of 1 counts as one part across)
+    parts_motion: str = "translation"  # each part's step: its mean ("translation") or its best rigid motion ("rigid")
     sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
 
     def __post_init__(self):
@@ -105,6 +107,8 @@ class StylizeConfig:
             raise ValueError(f"stylize: need smooth_k >= 1 and smooth_passes >= 0 (got {self.smooth_k}, {self.smooth_passes})")
         if not (self.parts >= 0 and self.parts_colour >= 0):
             raise ValueError(f"stylize: need parts >= 0 (0: off) and parts_colour >= 0, got {self.parts}, {self.parts_colour}")
+        if self.parts_motion not in PART_MOTIONS:
+            raise ValueError(f"stylize.parts_motion must be one of {PART_MOTIONS}, got '{self.parts_motion}'")
         if self.smooth_axis not in SMOOTH_AXES:
             raise ValueError(f"stylize.smooth_axis must be one of {SMOOTH_AXES}, got '{self.smooth_axis}'")
         if self.batch < 0:
@@ -280,6 +284,26 @@ def part_means(g: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = Non
     return (num / den.clamp_min(torch.finfo(g.dtype).tiny)[:, None])[part]
 
 
+def part_rigid_steps(y: torch.Tensor, step: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
+    """y [M, 3] positions, step [M, 3] each Gaussian's displacement, part [M] ids, w [M] masses -> [M, 3]
+    the displacement of each part's best rigid motion from y to y + step (w-weighted Kabsch:
+    ``y' = R (y - c_y) + c_t``, c the parts' weighted centroids): a part turns to follow a curved content
+    as well as moving, and stays whole."""
+    from .geometry import kabsch
+
+    P = int(part.max()) + 1 if len(part) else 0
+    w = torch.ones(len(y), dtype=y.dtype, device=y.device) if w is None else w.to(y)
+    t = y + step
+    W = torch.zeros(P, dtype=y.dtype, device=y.device).index_add_(0, part, w).clamp_min(torch.finfo(y.dtype).tiny)
+    cy = torch.zeros(P, 3, dtype=y.dtype, device=y.device).index_add_(0, part, w[:, None] * y) / W[:, None]
+    ct = torch.zeros(P, 3, dtype=y.dtype, device=y.device).index_add_(0, part, w[:, None] * t) / W[:, None]
+    g, u = y - cy[part], t - ct[part]
+    H = torch.zeros(P, 3, 3, dtype=torch.float64, device=y.device).index_add_(
+        0, part, (w[:, None, None] * g[:, :, None] * u[:, None, :]).double())
+    R = kabsch(H).to(y)
+    return torch.einsum("mij,mj->mi", R[part], g) + ct[part] - y
+
+
 def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tensor, y_rgb: torch.Tensor,
                     cfg: StylizeConfig) -> ClusterResult:
     """One term of eq. 9 alone (the per-pair path). x_*: content cluster in the style frame [N,3]; y_*:
@@ -371,7 +395,9 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
                 dC.grad.mul_(flow)
         if nb is not None:
             Y.grad = smooth_displacements(Y.grad, nb, cfg.smooth_passes, up)
-        if part is not None:
+        if part is not None and cfg.parts_motion == "rigid":  # the optimizer's step is -lr * grad
+            Y.grad = -part_rigid_steps(Y.detach(), -cfg.lr * Y.grad, part, b) / cfg.lr
+        elif part is not None:
             Y.grad = part_means(Y.grad, part, b)
         bad = ~torch.isfinite(Y.grad).all(1)
         if dC.grad is not None:
