@@ -203,13 +203,7 @@ def coverage_at_scale(result_alpha: torch.Tensor, reference_alpha: torch.Tensor,
     result whose elements leave the style's own gaps between them (the trained pebbles' sand between
     the stones, a weave's holes) scores as one without gaps, while a hole larger than an element (a
     part of the content lost) still counts. result_alpha, reference_alpha: [V, H, W]; radii: [V]."""
-    if result_alpha.shape != reference_alpha.shape:
-        raise ValueError(f"coverage: renders differ in shape {list(result_alpha.shape)} vs {list(reference_alpha.shape)}")
     if len(radii) != len(result_alpha):
         raise ValueError(f"coverage: {len(radii)} radii for {len(result_alpha)} views")
-    fg = reference_alpha > threshold
-    n = int(fg.sum())
-    if n == 0:
-        return 1.0
-    covered = sum(int((close_mask(a > threshold, float(r)) & f).sum()) for a, r, f in zip(result_alpha, radii, fg))
-    return covered / n
+    closed = [close_mask(a > threshold, float(r)) for a, r in zip(result_alpha, radii)]
+    return coverage(torch.stack(closed).to(result_alpha.dtype) if closed else result_alpha, reference_alpha, threshold)

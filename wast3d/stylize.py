@@ -274,14 +274,20 @@ def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour:
     return torch.from_numpy(np.unique(km.labels_, return_inverse=True)[1].reshape(-1).astype(np.int64))
 
 
-def part_means(g: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
-    """g [M, D] per-Gaussian steps, part [M] ids (0..P-1), w [M] masses (None: equal) -> [M, D] each
-    Gaussian's part's w-weighted mean step (:func:`style_parts`)."""
+def part_centroids(v: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
+    """v [M, D] per-Gaussian values, part [M] ids (0..P-1), w [M] masses (None: equal) -> [P, D] each
+    part's w-weighted mean."""
     P = int(part.max()) + 1 if len(part) else 0
-    w = torch.ones(len(g), dtype=g.dtype, device=g.device) if w is None else w.to(g)
-    num = torch.zeros(P, g.shape[1], dtype=g.dtype, device=g.device).index_add_(0, part, g * w[:, None])
-    den = torch.zeros(P, dtype=g.dtype, device=g.device).index_add_(0, part, w)
-    return (num / den.clamp_min(torch.finfo(g.dtype).tiny)[:, None])[part]
+    w = torch.ones(len(v), dtype=v.dtype, device=v.device) if w is None else w.to(v)
+    num = torch.zeros(P, v.shape[1], dtype=v.dtype, device=v.device).index_add_(0, part, v * w[:, None])
+    den = torch.zeros(P, dtype=v.dtype, device=v.device).index_add_(0, part, w)
+    return num / den.clamp_min(torch.finfo(v.dtype).tiny)[:, None]
+
+
+def part_means(g: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
+    """g [M, D] per-Gaussian steps, part [M] ids, w [M] masses -> [M, D] each Gaussian's part's
+    w-weighted mean step (:func:`style_parts`)."""
+    return part_centroids(g, part, w)[part]
 
 
 def part_rigid_steps(y: torch.Tensor, step: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
@@ -291,14 +297,11 @@ def part_rigid_steps(y: torch.Tensor, step: torch.Tensor, part: torch.Tensor, w:
     as well as moving, and stays whole."""
     from .geometry import kabsch
 
-    P = int(part.max()) + 1 if len(part) else 0
-    w = torch.ones(len(y), dtype=y.dtype, device=y.device) if w is None else w.to(y)
     t = y + step
-    W = torch.zeros(P, dtype=y.dtype, device=y.device).index_add_(0, part, w).clamp_min(torch.finfo(y.dtype).tiny)
-    cy = torch.zeros(P, 3, dtype=y.dtype, device=y.device).index_add_(0, part, w[:, None] * y) / W[:, None]
-    ct = torch.zeros(P, 3, dtype=y.dtype, device=y.device).index_add_(0, part, w[:, None] * t) / W[:, None]
+    cy, ct = part_centroids(y, part, w), part_centroids(t, part, w)
     g, u = y - cy[part], t - ct[part]
-    H = torch.zeros(P, 3, 3, dtype=torch.float64, device=y.device).index_add_(
+    w = torch.ones(len(y), dtype=y.dtype, device=y.device) if w is None else w.to(y)
+    H = torch.zeros(len(cy), 3, 3, dtype=torch.float64, device=y.device).index_add_(
         0, part, (w[:, None, None] * g[:, :, None] * u[:, None, :]).double())
     R = kabsch(H).to(y)
     return torch.einsum("mij,mj->mi", R[part], g) + ct[part] - y
