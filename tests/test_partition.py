@@ -7,7 +7,7 @@ import torch
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
 from wast3d.geometry import frame_from_normal
-from wast3d.registration import RegistrationConfig, base_scale, random_rotation, register, relief_length
+from wast3d.registration import RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
 from wast3d.selection import SelectConfig, select, select_footprint
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
 
@@ -437,6 +437,20 @@ def test_relief_length_follows_element_size_not_gaussian_count():
     flat = torch.cat([torch.rand(2000, 2) * 2 - 1, torch.zeros(2000, 1)], 1)
     with pytest.raises(ValueError, match="flat"):
         relief_length(flat)
+
+
+def test_relief_aspect_tells_compact_elements_from_long_ones():
+    """The relief aspect (RMS top height over relief length) that gates the flow's parts: pebbles and
+    stones (domes, boulders) under the default parts_max_aspect, blades and a weave above it, with a
+    margin of 1.5x either side; the aspect of a patch scaled 2x is the same."""
+    from wast3d.procedural import style_scene
+    from wast3d.stylize import StylizeConfig
+
+    limit = StylizeConfig().parts_max_aspect
+    aspect = {name: relief(style_scene(name, 10000).means).aspect for name in ("pebbles", "stones", "grass", "wicker")}
+    assert max(aspect["pebbles"], aspect["stones"]) * 1.5 < limit < min(aspect["grass"], aspect["wicker"]) / 1.5, aspect
+    a = style_scene("pebbles", 10000).means
+    assert abs(relief(a * 2.0).aspect / relief(a).aspect - 1) < 1e-6
 
 
 def test_relief_length_ignores_the_patch_bend():

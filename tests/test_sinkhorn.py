@@ -396,7 +396,7 @@ def test_parts_move_rigidly_and_follow_colour_edges():
     parts = (y[:, 0] * 3).long().clamp(max=2)
     pr = ClusterPair(torch.rand(200, 3, generator=g) + 0.3, torch.rand(200, 3, generator=g), y, torch.rand(300, 3),
                      0.3, y_part=parts)
-    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts=1.0))[0]
+    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts=1.0, parts_motion="translation"))[0]
     moved = res.positions.double() - y.double()
     for p in range(3):
         d = moved[parts == p]
@@ -405,6 +405,31 @@ def test_parts_move_rigidly_and_follow_colour_edges():
         StylizeConfig(parts=-1.0)
     with pytest.raises(ValueError, match="parts_motion"):
         StylizeConfig(parts_motion="wobbly")
+
+
+def test_flow_parts_on_gentle_reliefs_only(caplog):
+    """The default cuts pebbles into parts about a relief length across and leaves grass free (its
+    relief aspect is above parts_max_aspect), saying why in the log; parts 0 is off everywhere and a
+    large parts_max_aspect puts parts on the grass too."""
+    import logging
+
+    from wast3d.procedural import style_scene
+    from wast3d.registration import relief
+    from wast3d.stylize import StylizeConfig, flow_parts
+
+    pebbles, grass = style_scene("pebbles", 10000), style_scene("grass", 10000)
+    cfg = StylizeConfig()
+    with caplog.at_level(logging.INFO, logger="wast3d.stylize"):
+        part = flow_parts(pebbles, "z", cfg)
+        assert flow_parts(grass, "z", cfg) is None
+    assert "parts left out" in caplog.text and "relief aspect" in caplog.text
+    # about (patch width / (0.8 L))^2 parts, so an element's size each
+    n_cells = (float(pebbles.means[:, :2].max() - pebbles.means[:, :2].min()) / (cfg.parts * relief(pebbles.means).length)) ** 2
+    assert part is not None and len(part) == len(pebbles) and 0.5 < len(torch.unique(part)) / n_cells < 1.5
+    assert flow_parts(pebbles, "z", StylizeConfig(parts=0.0)) is None
+    assert flow_parts(grass, "z", StylizeConfig(parts_max_aspect=10.0)) is not None
+    with pytest.raises(ValueError, match="parts_max_aspect"):
+        StylizeConfig(parts_max_aspect=-1.0)
 
 
 def test_rigid_parts_recover_a_turn_and_move_whole():

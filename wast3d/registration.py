@@ -209,9 +209,28 @@ def outward_normals(content: torch.Tensor, labels: torch.Tensor, normals: torch.
     return torch.where(outward[:, None], normals.double(), -normals.double())
 
 
+@dataclass(frozen=True)
+class Relief:
+    """A style patch's relief (:func:`relief`): ``length`` L, about an element's width, and ``height``,
+    the RMS of its top surface about the patch's shape; ``aspect`` = height / length."""
+
+    length: float
+    height: float
+
+    @property
+    def aspect(self) -> float:
+        return self.height / self.length
+
+
 def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> float:
-    """The style's relief length L: twice the first zero crossing of the radial autocorrelation of its
-    top-surface height field. style: [M, 3] (a patch: ground with elements on it) -> L, in its units.
+    """The style's relief length (:func:`relief`). style: [M, 3] -> L, in its units."""
+    return relief(style, grid, q, up).length
+
+
+def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Relief:
+    """The style's relief (:class:`Relief`). style: [M, 3] (a patch: ground with elements on it) -> its
+    relief length L, twice the first zero crossing of the radial autocorrelation of its top-surface height
+    field, and the RMS height h of that field, both in its units.
 
     The patch's plane is its two largest principal axes, its normal the third, oriented to the patch's
     up (``up``, :func:`patch_frame`); on a ``grid`` x ``grid`` raster of the
@@ -224,7 +243,12 @@ def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z")
     A field of bumps of width w decorrelates at about w / 2: L = 2 r_0 is about an element's width
     (procedural pebbles 0.31 and stones 0.53 in units where their labelled diameters are 0.21 and
     0.45; a weave's 0.087 at a period of 0.17). The demo's trained pebbles: 1.65 raw (floaters), 0.37
-    cleaned (surface.clean_style): clean first."""
+    cleaned (surface.clean_style): clean first.
+
+    The aspect h / L says whether the elements are about L in every direction: a gentle relief (domes,
+    boulders: 0.08-0.11 on the demo's pebbles and stones, procedural and trained) has elements about
+    L wide; a steep one (blades: 0.23-0.27; a weave: 0.27-0.34) has elements far longer than L along
+    some direction (up for a blade, along the strand for a weave)."""
     if len(style) < 16:
         raise ValueError(f"relief length: {len(style)} style points (need at least 16)")
     c, axes = patch_frame(style, up)
@@ -252,11 +276,12 @@ def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z")
     f = np.fft.fftfreq(2 * grid) * 2 * grid
     r = np.hypot(f[:, None], f[None, :]).round().astype(np.int64).ravel()
     prof = np.bincount(r, acf.ravel() / acf[0, 0])[:grid] / np.maximum(np.bincount(r)[:grid], 1)
+    height = float(np.sqrt(acf[0, 0]))
     if not (prof < 0).any():
-        return 2.0 * grid * cell
+        return Relief(2.0 * grid * cell, height)
     k = int(np.argmax(prof < 0))  # the first crossing, linearly between the radii k - 1 and k
     r0 = k - 1 + prof[k - 1] / (prof[k - 1] - prof[k])
-    return 2.0 * r0 * cell
+    return Relief(2.0 * r0 * cell, height)
 
 
 def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConfig) -> tuple[float, dict]:

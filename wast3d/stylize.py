@@ -19,7 +19,10 @@ For cluster i, in the registered (style) frame:
 - the optimized variables are the style Gaussians' normalized positions and colour offsets (one
   luminance offset per Gaussian, or three RGB offsets), with Adam (``optimizer: adam``) or by the
   Sinkhorn gradient flow (``optimizer: flow``: plain steps along ``-M grad``, i.e. towards each
-  point's transport target); the content is fixed.
+  point's transport target); the content is fixed;
+- piecewise-rigid flow (``parts``, default on for a style whose relief is gentle, :func:`flow_parts`):
+  the style is cut into parts about an element across, each moving by its Gaussians' best rigid
+  motion towards their targets, so an element made of many trained Gaussians moves whole;
   Clusters are independent terms of eq. 9 and both optimizers act per coordinate, so optimizing them
   together (one packed Sinkhorn solve per step over ``batch`` clusters, :func:`stylize_clusters`) is
   the same as optimizing the sum, and the same as one cluster after another;
@@ -88,10 +91,12 @@ class StylizeConfig:
     smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
     smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
     smooth_axis: str = "all"  # "all": the whole step is smoothed; "up": only its component along the style's up
-    parts: float = 0.0  # piecewise-rigid flow: the style cut into parts this many relief lengths across, each
-    # moving by its Gaussians' mass-weighted mean step (0: off); see style_parts
-    parts_colour: float = 1.0  # the colour's weight in the parts' k-means (1: a colour step of 1 counts as one part across)
-    parts_motion: str = "translation"  # each part's step: its mean ("translation") or its best rigid motion ("rigid")
+    parts: float = 0.8  # piecewise-rigid flow: the style cut into parts this many relief lengths across, each
+    # moving as one (0: off); see style_parts
+    parts_colour: float = 3.0  # the colour's weight in the parts' k-means (1: a colour step of 1 counts as one part across)
+    parts_motion: str = "rigid"  # each part's step: its mean ("translation") or its best rigid motion ("rigid")
+    parts_max_aspect: float = 0.16  # parts only on a style whose relief aspect (registration.relief) is at most
+    # this: elements about a relief length in every direction (pebbles, boulders), not blades or strands
     sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
 
     def __post_init__(self):
@@ -105,8 +110,9 @@ class StylizeConfig:
             raise ValueError(f"stylize.masses must be one of {MASSES}, got '{self.masses}'")
         if self.smooth_k < 1 or self.smooth_passes < 0:
             raise ValueError(f"stylize: need smooth_k >= 1 and smooth_passes >= 0 (got {self.smooth_k}, {self.smooth_passes})")
-        if not (self.parts >= 0 and self.parts_colour >= 0):
-            raise ValueError(f"stylize: need parts >= 0 (0: off) and parts_colour >= 0, got {self.parts}, {self.parts_colour}")
+        if not (self.parts >= 0 and self.parts_colour >= 0 and self.parts_max_aspect >= 0):
+            raise ValueError("stylize: need parts >= 0 (0: off), parts_colour >= 0 and parts_max_aspect >= 0, got "
+                             f"{self.parts}, {self.parts_colour}, {self.parts_max_aspect}")
         if self.parts_motion not in PART_MOTIONS:
             raise ValueError(f"stylize.parts_motion must be one of {PART_MOTIONS}, got '{self.parts_motion}'")
         if self.smooth_axis not in SMOOTH_AXES:
@@ -272,6 +278,33 @@ def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour:
     init /= np.bincount(cell, minlength=P)[:, None]
     km = KMeans(P, init=init, n_init=1, max_iter=max_iter).fit(feats)
     return torch.from_numpy(np.unique(km.labels_, return_inverse=True)[1].reshape(-1).astype(np.int64))
+
+
+def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | None:
+    """The style's parts for the flow ([M] ids, :func:`style_parts`), or None where every Gaussian moves
+    freely: ``parts`` 0, a style without relief, or a steep one (relief aspect above ``parts_max_aspect``:
+    blades or strands longer than a part, which turning parts as one would tear: docs/measurements.md).
+    Says which, and why, in the log."""
+    from .registration import relief
+
+    if cfg.parts <= 0:
+        return None
+    try:
+        rel = relief(style.means, up=up)
+    except ValueError as e:
+        log.warning("stylize: parts left out, every Gaussian moves freely (no relief: %s)", e)
+        return None
+    if rel.aspect > cfg.parts_max_aspect:
+        log.info("stylize: parts left out, every Gaussian moves freely: the style's relief aspect %.3g is above "
+                 "parts_max_aspect %.3g (elements longer than a relief length: blades, strands)", rel.aspect,
+                 cfg.parts_max_aspect)
+        return None
+    size = cfg.parts * rel.length
+    part = style_parts(style.means, style.rgb, up, size, cfg.parts_colour)
+    counts = torch.bincount(part)
+    log.info("stylize: relief aspect %.3g <= %.3g: %d parts of %.4g across (median %d Gaussians) move as one (%s)",
+             rel.aspect, cfg.parts_max_aspect, len(counts), size, int(counts.median()), cfg.parts_motion)
+    return part
 
 
 def part_centroids(v: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
@@ -505,19 +538,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()
     c_mass, s_mass = transport_masses(content, style, cfg.masses)
-    part = None
-    if cfg.parts > 0:
-        from .registration import relief_length
-
-        try:
-            size = cfg.parts * relief_length(style.means, up=reg.style_up.tolist())
-        except ValueError as e:
-            log.warning("stylize: parts skipped, every Gaussian moves freely (no relief length: %s)", e)
-        else:
-            part = style_parts(style.means, style.rgb, reg.style_up.tolist(), size, cfg.parts_colour)
-            counts = torch.bincount(part)
-            log.info("stylize: %d parts of %.4g across (median %d Gaussians) move rigidly", len(counts), size,
-                     int(counts.median()))
+    part = flow_parts(style, reg.style_up.tolist(), cfg)
     todo, pairs = [], []
     for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
