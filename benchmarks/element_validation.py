@@ -7,7 +7,15 @@
   still on the result but the element copies are torn apart; intact must fall to ~0;
 - the unstylized content and the colour transfer (negatives): element_share 0.
 
-    .venv/bin/python benchmarks/element_validation.py ant__pebbles ant__pebbles_trained [--seed-experiment seed1]
+With ``--texture`` the style metrics that claim to see the style's texture (texture_swd, relief_w1)
+face the same two controls: the confetti is rendered by the render stage's own function
+(``pipeline.run_render``, the result's render settings and content reference) and scored by the
+evaluate stage's functions against the pair's texture reference. A metric that sees elements must
+put the collage (whole elements) closer to the style than the confetti (the same Gaussians, torn)
+by >= 10x its spread over metric seeds (on ours: texture_swd's window and direction seeds on its
+frames, relief_w1's centre seeds on its Gaussians); the verdict columns say whether it does.
+
+    .venv/bin/python benchmarks/element_validation.py ant__pebbles ant__pebbles_trained [--seed-experiment seed1] [--texture]
 
 reads results/eval/PAIR/METHOD.json (element_share_ratio, element_intact; run them through the workflow
 first) and computes the confetti control with wast3d.elements; writes results/benchmarks/element_validation.csv.
@@ -18,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
@@ -36,11 +45,13 @@ def main(argv=None) -> None:
     ap.add_argument("pairs", nargs="+")
     ap.add_argument("--seed-experiment", default="seed1")
     ap.add_argument("--results", type=Path, default=ROOT / "results")
+    ap.add_argument("--texture", action="store_true", help="also render the confetti and score texture_swd, relief_w1")
+    ap.add_argument("--seeds", type=int, default=5, help="texture_swd seeds for its spread (--texture)")
     a = ap.parse_args(argv)
     rows = []
     for pair in a.pairs:
         ev = a.results / "eval" / pair
-        for method, role in (("selected", "collage (positive)"), ("default", "ours"),
+        for method, role in (("selected", "collage (positive)"), ("default", "ours"), ("no_parts", "ours without parts"),
                              (a.seed_experiment, "ours, other seeds"), ("input", "content (negative)"),
                              ("colour_ot", "colour transfer (negative)")):
             f = ev / f"{method}.json"
@@ -48,7 +59,8 @@ def main(argv=None) -> None:
                 continue
             m = json.loads(f.read_text())
             rows.append({"pair": pair, "control": role, "method": method, "element_share_ratio": m.get("element_share_ratio"),
-                         "element_intact": m.get("element_intact"), "coverage": m.get("coverage")})
+                         "element_intact": m.get("element_intact"), "coverage": m.get("coverage"),
+                         "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1")})
         d = a.results / "stylize" / pair / "default"
         res = read_ply(d / "final.ply")
         npz = load_npz(d / "stylize.npz")
@@ -60,13 +72,61 @@ def main(argv=None) -> None:
             idx = (clusters == c).nonzero().squeeze(1)
             shuffled[idx] = res.means[idx[torch.randperm(len(idx), generator=g)]]
         conf = element_intact(before, shuffled, copy_ids(res.element, clusters), ElementConfig())
-        rows.append({"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
-                     "element_share_ratio": None, "element_intact": conf["intact"], "coverage": None})
+        row = {"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
+               "element_share_ratio": None, "element_intact": conf["intact"], "coverage": None}
+        if a.texture:
+            row.update(texture_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
+        rows.append(row)
     df = pd.DataFrame(rows)
     out = a.results / "benchmarks" / "element_validation.csv"
     out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(out, index=False)
     print(df.to_string(index=False))
+
+
+def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds: int) -> dict:
+    """texture_swd and relief_w1 of the confetti scene (rendered as the pair's result was), the spread of
+    texture_swd over ``seeds`` on ours' frames, and each metric's verdict (module docstring)."""
+    import dataclasses
+    import statistics
+    import tempfile
+
+    from wast3d.image_metrics import TextureConfig, texture_levels
+    from wast3d.metrics import MetricsConfig, relief_w1
+    from wast3d.pipeline import run_render
+    from wast3d.ply import read_ply, write_ply
+    from wast3d.render import read_frames
+
+    ours = json.loads((results / "eval" / pair / "default.json").read_text())
+    render_dir = results / "render" / "pairs" / pair
+    params = json.loads((render_dir / "default" / "render.json").read_text())["config"]
+    tcfg = TextureConfig(**ours["config"]["texture"])
+    reference = read_frames(results / "render" / "texture_reference" / pair)
+    with tempfile.TemporaryDirectory(prefix="wast3d_confetti_") as tmp:
+        ply = Path(tmp) / "confetti.ply"
+        write_ply(ply, confetti)
+        run_render(ply, Path(ours["content"]), Path(tmp) / "render", params, progress=False)
+        frames = read_frames(Path(tmp) / "render")
+    tex = texture_levels(frames, reference, tcfg)["texture_swd"]
+    mcfg = MetricsConfig(**ours["config"]["metrics"])
+    style = read_ply(ours["style"]).means
+    relief = relief_w1(confetti.means, style, mcfg)
+    own = read_frames(render_dir / "default")
+    swds = [texture_levels(own, reference, dataclasses.replace(tcfg, seed=k))["texture_swd"] for k in range(seeds)]
+    result = read_ply(ours["result"]).means
+    reliefs = [relief_w1(result, style, dataclasses.replace(mcfg, seed=k)) for k in range(seeds)]
+    spread = statistics.stdev(swds) if seeds > 1 else float("nan")
+    relief_spread = statistics.stdev(reliefs) if seeds > 1 else float("nan")
+    collage = next((r for r in rows if r["pair"] == pair and r["method"] == "selected"), {})
+
+    def verdict(pos, neg, spread):
+        if pos is None or neg is None:
+            return "no collage to compare"
+        return "valid" if neg - pos >= 10 * spread else f"invalid: confetti - collage = {neg - pos:.3g} < 10 x spread"
+
+    return {"texture_swd": tex, "relief_w1": relief, "texture_swd_spread": spread, "relief_w1_spread": relief_spread,
+            "texture_swd_verdict": verdict(collage.get("texture_swd"), tex, spread),
+            "relief_w1_verdict": verdict(collage.get("relief_w1"), relief, relief_spread)}
 
 
 if __name__ == "__main__":
