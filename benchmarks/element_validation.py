@@ -87,7 +87,6 @@ def main(argv=None) -> None:
 def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds: int) -> dict:
     """texture_swd and relief_w1 of the confetti scene (rendered as the pair's result was), the spread of
     texture_swd over ``seeds`` on ours' frames, and each metric's verdict (module docstring)."""
-    import dataclasses
     import statistics
     import tempfile
 
@@ -112,9 +111,9 @@ def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds
     style = read_ply(ours["style"]).means
     relief = relief_w1(confetti.means, style, mcfg)
     own = read_frames(render_dir / "default")
-    swds = [texture_levels(own, reference, dataclasses.replace(tcfg, seed=k))["texture_swd"] for k in range(seeds)]
+    swds = [texture_levels(own, reference, replace(tcfg, seed=k))["texture_swd"] for k in range(seeds)]
     result = read_ply(ours["result"]).means
-    reliefs = [relief_w1(result, style, dataclasses.replace(mcfg, seed=k)) for k in range(seeds)]
+    reliefs = [relief_w1(result, style, replace(mcfg, seed=k)) for k in range(seeds)]
     spread = statistics.stdev(swds) if seeds > 1 else float("nan")
     relief_spread = statistics.stdev(reliefs) if seeds > 1 else float("nan")
     collage = next((r for r in rows if r["pair"] == pair and r["method"] == "selected"), {})
