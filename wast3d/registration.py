@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from .gaussians import quat_to_rotmat
-from .geometry import frame_from_normal, kabsch, knn, local_normals
+from .geometry import KnnIndex, frame_from_normal, kabsch, knn, local_normals
 
 log = logging.getLogger(__name__)
 
@@ -312,15 +312,17 @@ def _segment_mean(v: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     return s / c.view(-1, *([1] * (v.ndim - 1)))
 
 
-def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, p, s_lo, s_hi, iters: int):
-    """Anisotropic ICP on centred points g [P,3] belonging to transforms seg [P] (B of them).
+def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, p, s_lo, s_hi, iters: int,
+         index: KnnIndex):
+    """Anisotropic ICP on centred points g [P,3] belonging to transforms seg [P] (B of them); ``index``:
+    the style [M,3] indexed for nearest-neighbour queries.
 
     Returns the best R, s, p and residual [B] of each transform, and the residual at its start [B]."""
     best = (R.clone(), s.clone(), p.clone())
     best_res = torch.full((B,), float("inf"), dtype=g.dtype)
     for it in range(iters + 1):
         y = s[seg] * torch.einsum("pij,pj->pi", R[seg], g) + p[seg]
-        d, idx = knn(y, style, 1)
+        d, idx = index.query(y, 1)
         res = _segment_mean(d[:, 0], seg, B)
         if it == 0:
             res_start = res
@@ -423,12 +425,13 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     # point instances: every subsampled point once per start
     inst_pt = sub.repeat(M)
     inst_tf = labels[sub].repeat(M) * M + torch.arange(M).repeat_interleave(len(sub))
-    R, s, p, res, res0 = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo, s_hi, cfg.iterations)
+    index = KnnIndex(style)  # one KD-tree for every ICP round of both phases
+    R, s, p, res, res0 = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo, s_hi, cfg.iterations, index)
     best = (res.view(K, M)).argmin(1)
     pick = torch.arange(K) * M + best
     R, s, p = R[pick], s[pick], p[pick]
     # refine the best start on every point of its cluster
-    R, s, p, res_final, _ = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations)
+    R, s, p, res_final, _ = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations, index)
     t = mu - torch.einsum("kji,kj->ki", R, p / s)
     reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style, up)
     log.info("registration: %d clusters x %d starts; residual %.3f -> %.3f style spacings (mean); s0 = %.4g",
