@@ -111,9 +111,9 @@ class PairRunner:
         from wast3d.stylize import stylize
 
         t = time.perf_counter()
-        off, idx = select_with(SelectConfig(k=k, mode=mode, radius=radius), self.mapped, self.labels,
-                               self.style.means.double(), self.reg.style_spacing)
-        res = stylize(self.content, self.labels, self.style, self.reg, off, idx, stylize_cfg, progress=False)
+        sel = select_with(SelectConfig(k=k, mode=mode, radius=radius), self.mapped, self.labels,
+                          self.style.means.double(), self.reg.style_spacing)
+        res = stylize(self.content, self.labels, self.style, self.reg, sel, stylize_cfg, progress=False)
         final, _ = readjust_scales(res.scene, res.before_means, res.labels, 8, bound)
         return final, time.perf_counter() - t, res.curves
 

@@ -608,7 +608,7 @@ def test_valid_metrics_order_floor_positive_negative(tmp_path):
     from wast3d.gaussians import anisotropy
     from wast3d.metrics import MetricsConfig, relief_w1, wasserstein_1d
     from wast3d.registration import RegistrationConfig, register
-    from wast3d.selection import select_footprint
+    from wast3d.selection import Selection, select_footprint
     from wast3d.stylize import StylizeConfig, stylize
 
     content = make_scene("content", "ant", 4000)
@@ -618,7 +618,8 @@ def test_valid_metrics_order_floor_positive_negative(tmp_path):
                                                                            refine_iterations=30))
     off, idx = select_footprint(reg.apply(content.means.double(), labels), labels, style.means.double(), 1.0,
                                 reg.style_spacing)
-    collage = stylize(content, labels, style, reg, off, idx, StylizeConfig(iterations=0), progress=False).scene
+    collage = stylize(content, labels, style, reg, Selection(off, idx, torch.zeros(len(off) - 1, dtype=torch.float64)),
+                      StylizeConfig(iterations=0), progress=False).scene
     cfg = MetricsConfig(relief_centres=1024)
     aniso = lambda sc: wasserstein_1d(anisotropy(sc.scales.double()).log10(),  # noqa: E731
                                       anisotropy(style.scales.double()).log10())

@@ -6,9 +6,9 @@ import torch
 
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
-from wast3d.geometry import frame_from_normal
+from wast3d.geometry import _flushing_denormals, frame_from_normal, kdtree, knn
 from wast3d.registration import RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
-from wast3d.selection import SelectConfig, select, select_footprint
+from wast3d.selection import SelectConfig, select, select_footprint, select_with, thin
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
 
 D64 = torch.float64
@@ -277,6 +277,50 @@ def test_footprint_selection_keeps_whole_elements_where_knn_takes_a_slab():
     off3, idx3 = select(mapped, labels, style, 3)
     k0 = idx3[off3[0]:off3[1]]
     assert float(style[k0][is_dome[k0], 2].max()) < 0.2 < float(style[d0][is_dome[d0], 2].max())
+
+
+def test_kdtree_builds_on_tied_coordinates_under_flush_to_zero():
+    """The CLI and this suite flush denormals; scipy's balanced KD-tree build then crashed the process on
+    many tied coordinates (quantized positions: compressed PLYs, procedural grids). kdtree builds with
+    denormals honoured and puts the flag back."""
+    torch.set_flush_denormal(True)
+    assert _flushing_denormals()
+    x = np.round(np.random.default_rng(0).random((100_000, 3)) * 20) / 20  # 9,261 distinct points
+    tree = kdtree(x)
+    assert _flushing_denormals()
+    d, _ = tree.query(x[:100], k=2)
+    assert float(d[:, 0].max()) == 0.0
+    dist, _ = knn(torch.from_numpy(x[:500]), torch.from_numpy(x), 3, exclude_self=True)
+    assert float(dist.max()) <= 0.05 + 1e-12
+
+
+def test_thin_caps_a_dense_selection_and_enlarges_what_it_keeps():
+    """A style 16x denser than the cap allows: the cluster keeps a uniform subset (the dome keeps its
+    share, so it stays whole) and gains the spacing's growth, f^(-1/2) on a surface; a cluster under the
+    cap is left as it is; max_per_point 0 leaves everything."""
+    style, is_dome = _ground_with_dome(spacing=0.0125)  # 16x the points of the 0.05 grid
+    sel0 = torch.arange(len(style))
+    near = torch.nonzero(style[:, :2].norm(dim=1) < 0.3).squeeze(1)  # a second, small cluster
+    offsets = torch.tensor([0, len(sel0), len(sel0) + len(near)])
+    indices = torch.cat([sel0, near])
+    counts = torch.tensor([len(style) // 64, len(near)])  # 64 style Gaussians per content point; 1
+    out = thin(offsets, indices, counts, style, max_per_point=4.0)
+    d0, d1 = out.indices[out.offsets[0]:out.offsets[1]], out.indices[out.offsets[1]:out.offsets[2]]
+    f = len(d0) / len(style)
+    assert len(d0) == int(np.ceil(4.0 * int(counts[0]))) and abs(f - 1 / 16) < 0.01
+    assert torch.equal(d0, torch.sort(d0).values) and len(torch.unique(d0)) == len(d0)
+    assert abs(float(is_dome[d0].double().mean()) - float(is_dome.double().mean())) < 0.03  # the dome's share kept
+    assert abs(float(out.log_gain[0].exp()) - f ** -0.5) < 0.2 * f ** -0.5  # ~4x on a surface thinned 16x
+    assert torch.equal(d1, near) and float(out.log_gain[1]) == 0.0
+    # a volume thinned 16x spreads by about 16^(1/3) = 2.5
+    cloud = torch.rand(20000, 3, generator=torch.Generator().manual_seed(0), dtype=D64)
+    vol = thin(torch.tensor([0, 20000]), torch.arange(20000), torch.tensor([1250]), cloud, 1.0)
+    assert abs(float(vol.log_gain[0].exp()) - 16 ** (1 / 3)) < 0.4
+    off = thin(offsets, indices, counts, style, max_per_point=0.0)
+    assert torch.equal(off.indices, indices) and not bool(off.log_gain.any())
+    # select_with applies the cap; the demo's pairs select at most 22 per point, under the default 16 ...
+    with pytest.raises(ValueError, match="max_per_point"):
+        SelectConfig(max_per_point=-1)
 
 
 def test_footprint_grows_where_the_content_is_sparse():

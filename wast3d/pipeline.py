@@ -157,13 +157,23 @@ def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: 
     content, style = read_ply(content_ply), read_ply(style_ply)
     labels = _labels(clusters_npz, len(content))
     reg = load_registration(reg_npz)
-    offsets, indices = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
-                                   reg.style_spacing)
-    sizes = (offsets[1:] - offsets[:-1]).numpy()
+    sel = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
+                      reg.style_spacing)
+    sizes = sel.sizes.numpy()
     if (sizes == 0).any():
         log.warning("select: %d clusters got no style Gaussians (they are skipped by stylize)", int((sizes == 0).sum()))
-    save_npz(out_npz, offsets=offsets.numpy(), indices=indices.numpy(), sizes=sizes, k=k)
+    thinned = int((sel.log_gain != 0).sum())
+    if thinned:
+        log.info("select: %d of %d clusters had more than max_per_point %g style Gaussians per content point; each "
+                 "kept a uniform subset, enlarged by a median %.2fx", thinned, len(sizes), cfg.max_per_point,
+                 float(sel.log_gain[sel.log_gain != 0].exp().median()))
+    else:
+        log.info("select: no cluster over max_per_point %g style Gaussians per content point; nothing thinned",
+                 cfg.max_per_point)
+    save_npz(out_npz, offsets=sel.offsets.numpy(), indices=sel.indices.numpy(), sizes=sizes, k=k,
+             log_gain=sel.log_gain.numpy())
     write_json(Path(out_npz).with_suffix(".json"), {"k": k, "mode": cfg.mode, "radius": cfg.radius,
+                                                    "max_per_point": cfg.max_per_point, "clusters_thinned": thinned,
                                                     "clusters": len(sizes), "selected_total": int(sizes.sum()),
                                                     "size_min": int(sizes.min()), "size_median": float(np.median(sizes)),
                                                     "size_max": int(sizes.max())})
@@ -171,6 +181,7 @@ def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: 
 
 def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, sel_npz: Path,
                 out_ply: Path, out_npz: Path, out_csv: Path, params: dict, progress: bool = True) -> None:
+    from .selection import Selection
     from .stylize import StylizeConfig, stylize
 
     cfg = make_config(StylizeConfig, params, "stylize")
@@ -180,8 +191,13 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
     sel = load_npz(sel_npz, required=("offsets", "indices"))
     if int(sel["indices"].max(initial=0)) >= len(style):
         raise ValueError(f"{sel_npz}: 'indices' point past the style scene's {len(style)} Gaussians")
-    res = stylize(content, labels, style, reg, torch.from_numpy(sel["offsets"]), torch.from_numpy(sel["indices"]),
-                  cfg, progress)
+    K = len(sel["offsets"]) - 1
+    gain = sel["log_gain"] if "log_gain" in sel else np.zeros(K)  # selections written before the cap have none
+    if len(gain) != K or not np.isfinite(gain).all():
+        raise ValueError(f"{sel_npz}: 'log_gain' must hold {K} finite values (one per cluster)")
+    selection = Selection(torch.from_numpy(sel["offsets"]), torch.from_numpy(sel["indices"]),
+                          torch.from_numpy(np.asarray(gain, dtype=np.float64)))
+    res = stylize(content, labels, style, reg, selection, cfg, progress)
     out, curves, secs = res.scene, res.curves, res.seconds
     write_ply(out_ply, out)
     save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy())

@@ -529,9 +529,11 @@ class Stylized:
     before_means: torch.Tensor
 
 
-def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, offsets: torch.Tensor,
-            indices: torch.Tensor, cfg: StylizeConfig, progress: bool = True) -> Stylized:
-    """Run eq. 9 over all clusters (:class:`Stylized`)."""
+def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, selection,
+            cfg: StylizeConfig, progress: bool = True) -> Stylized:
+    """Run eq. 9 over all clusters (:class:`Stylized`); ``selection``: a :class:`~wast3d.selection.Selection`
+    (each cluster's style Gaussians and their scale gain)."""
+    offsets, indices = selection.offsets, selection.indices
     K = len(offsets) - 1
     cm = content.means.double()
     scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
@@ -547,6 +549,8 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
             log.warning("stylize: cluster %d is empty (content %d, style %d); skipped", i, int(m.sum()), len(sel))
             continue
         sub = style.subset(sel)
+        if float(selection.log_gain[i]) != 0.0:  # a thinned cluster: its Gaussians enlarged (selection.thin)
+            sub = replace(sub, log_scales=sub.log_scales + float(selection.log_gain[i]))
         todo.append((i, sel, sub))
         pairs.append(ClusterPair(mapped[m], c_rgb[m], sub.means.float(), sub.rgb.float(),
                                  cluster_blur(cfg, mapped[m], scene_radius, float(reg.s[i].mean()),
