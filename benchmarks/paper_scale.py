@@ -1,5 +1,5 @@
 """The paper's scale, stage by stage: lego (pretrained) against a procedural pebbles style of 1e6
-Gaussians (and smaller), 400 clusters, 100 steps (config/paper_scale.yaml), through the workflow.
+Gaussians (and smaller), 400 clusters, 30 steps (config/paper_scale.yaml), through the workflow.
 
     python benchmarks/paper_scale.py [--sizes 250000 1000000]
 
@@ -136,7 +136,7 @@ def picture(df, out: Path) -> None:
     ax.set_yticks(range(len(stages)), stages, fontsize=8)
     ax.set_xscale("log")
     ax.set_xlabel("seconds (log), 2 CPU threads")
-    ax.set_title("paper scale: lego x pebbles, 400 clusters, 100 steps, per stage", fontsize=9)
+    ax.set_title("paper scale (config/paper_scale.yaml): lego x pebbles, 400 clusters, per stage", fontsize=9)
     ax.invert_yaxis()
     ax.legend(handles=handles, fontsize=7, loc="upper right", bbox_to_anchor=(1.0, -0.08), ncol=3)
     fig.tight_layout()
