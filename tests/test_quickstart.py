@@ -28,6 +28,10 @@ def test_names_and_config(tmp_path):
     assert cfg["pairs"] == [["c", "s"]] and cfg["table1"]["pairs"] == [["c", "s"]]
     assert set(cfg["experiments"]) == {"default", "selected"} and "sweeps" not in cfg
     assert cfg["experiments"]["default"] == base["experiments"]["default"]  # the project's defaults
+    assert cfg["table1"]["methods"] == {m: base["table1"]["methods"][m]  # and its labels
+                                        for m in ("default", "colour_ot", "selected", "input")}
+    with pytest.raises(ValueError, match="no label for selected"):
+        two_scene_config({**base, "table1": {"methods": {"default": "x", "colour_ot": "y", "input": "z"}}}, c, s)
     with pytest.raises(ValueError, match="transforms_train.json"):
         two_scene_config(base, tmp_path, s)
     with pytest.raises(FileNotFoundError, match="nope.ply"):

@@ -14,12 +14,7 @@ import copy
 import re
 from pathlib import Path
 
-TABLE1_METHODS = {
-    "default": "WaSt-3D (ours)",
-    "colour_ot": "colour transfer (OT)",
-    "selected": "collage (registration + selection, no optimization)",
-    "input": "content (no stylization)",
-}
+TABLE1_METHODS = ("default", "colour_ot", "selected", "input")  # labelled as the project's config labels them
 
 
 def workflow_root() -> Path:
@@ -79,7 +74,11 @@ def two_scene_config(base: dict, content: Path, style: Path) -> dict:
     cfg["scenes"] = {c: scene_entry(content), s: scene_entry(style)}
     cfg["pairs"] = [[c, s]]
     cfg["run"] = ["default"]
-    cfg["table1"] = {"pairs": [[c, s]], "methods": dict(TABLE1_METHODS)}
+    labels = base.get("table1", {}).get("methods") or {}
+    missing = [m for m in TABLE1_METHODS if not labels.get(m)]
+    if missing:
+        raise ValueError(f"config: table1.methods of the project's config has no label for {', '.join(missing)}")
+    cfg["table1"] = {"pairs": [[c, s]], "methods": {m: labels[m] for m in TABLE1_METHODS}}
     cfg.pop("sweeps", None)
     cfg["experiments"] = {k: v for k, v in cfg.get("experiments", {}).items() if k in ("default", "selected")}
     used = {v.get("partition", "default") for v in cfg["experiments"].values()}

@@ -91,8 +91,9 @@ BASELINES = ("colour_ot", "input")
 EVALUATION = config.get("evaluation", {})
 TABLE1 = config.get("table1", {})
 TABLE1_PAIRS = [tuple(p) for p in TABLE1.get("pairs", PAIRS)]
-TABLE1_METHODS = TABLE1.get("methods", {"default": "WaSt-3D (ours)", "colour_ot": "colour transfer (OT)",
-                                        "input": "content (no stylization)"})
+if not TABLE1.get("methods"):  # config/config.yaml labels them; a config of its own must too
+    raise ValueError("config: table1.methods is missing: a label for each method of Table 1 (see config/config.yaml)")
+TABLE1_METHODS = TABLE1["methods"]
 TABLE1_METHODS = {m: label for m, label in TABLE1_METHODS.items() if label is not None}
 for _e in EXPERIMENTS:
     if _e in BASELINES:
