@@ -154,7 +154,7 @@ def thin(offsets: torch.Tensor, indices: torch.Tensor, counts: torch.Tensor, sty
     dbar the mean distance to the ``THIN_K`` nearest others of the same cluster: thinning a surface by a
     fraction f spreads it by about f^(-1/2), a volume by f^(-1/3); the ratio measures which. One gain per
     cluster, as the thinning is uniform. ``max_per_point`` 0: nothing is thinned."""
-    from .geometry import knn_mean_dist
+    from .geometry import KnnIndex, knn_mean_dist
 
     K = len(offsets) - 1
     gain = torch.zeros(K, dtype=torch.float64)
@@ -173,7 +173,7 @@ def thin(offsets: torch.Tensor, indices: torch.Tensor, counts: torch.Tensor, sty
         pick = torch.from_numpy(np.sort(rng.choice(len(sel), n, replace=False)))
         if n > THIN_K:
             pts = style[sel].double()
-            d_all = knn_mean_dist(pts, THIN_K)[pick]
+            d_all = KnnIndex(pts).query(pts[pick], THIN_K, exclude_self=True)[0].mean(1)  # the kept ones only
             d_kept = knn_mean_dist(pts[pick], THIN_K)
             ok = d_all > 0
             if bool(ok.any()):
