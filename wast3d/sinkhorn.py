@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import torch
 
@@ -281,6 +282,199 @@ def sinkhorn(x: torch.Tensor, y: torch.Tensor, cfg: SinkhornConfig = SinkhornCon
     return Result(r.value[0], r.grad_x, r.grad_y, r.potentials, info)
 
 
+class _Duals(NamedTuple):
+    """The four dual potentials of K packed problems during a solve: f_ba [R], g_ab [C], f_aa [R], g_bb [C]."""
+
+    f_ba: torch.Tensor
+    g_ab: torch.Tensor
+    f_aa: torch.Tensor
+    g_bb: torch.Tensor
+
+
+@dataclass
+class _Packed:
+    """K problems packed without padding: x [R, D] (problem k at ``xo[k]:xo[k+1]``), y [C, D] likewise,
+    their log-weights, and the soft-min kernel of the backend (one call per step over the active
+    problems)."""
+
+    x: torch.Tensor
+    y: torch.Tensor
+    xo: torch.Tensor  # [K+1], host-side: the kernels take the offsets from there
+    yo: torch.Tensor
+    a_log: torch.Tensor  # [R]
+    b_log: torch.Tensor  # [C]
+    softmin: object
+    debias: bool
+
+    def __post_init__(self):
+        self.K = len(self.xo) - 1
+        self.xid, self.yid = segment_ids(self.xo).to(self.x.device), segment_ids(self.yo).to(self.x.device)
+
+    def rows(self, t: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+        """Per-problem values [K] -> per-row [len(ids)]."""
+        return t.to(device=self.x.device, dtype=self.x.dtype)[ids]
+
+    def soft(self, eps_k, q, qo, r, ro, h, act, bary=False):
+        """``-eps log sum_j exp(h_j - |q_i - r_j|^2 / (2 eps))`` for the problems in ``act`` (ids)."""
+        return self.softmin(eps_k.to(self.x.dtype), q, r, h, bary=bary, x_off=qo, y_off=ro, active=act)
+
+    def zeros(self) -> _Duals:
+        x, y = self.x, self.y
+        return _Duals(x.new_zeros(len(x)), y.new_zeros(len(y)), x.new_zeros(len(x)), y.new_zeros(len(y)))
+
+    def where(self, mask: torch.Tensor, new: _Duals, old: _Duals) -> _Duals:
+        """``new`` on the rows of the problems in ``mask`` [K] bool, ``old`` elsewhere."""
+        mx, my = self.rows(mask, self.xid).bool(), self.rows(mask, self.yid).bool()
+        return _Duals(*(torch.where(m, u, v) for u, v, m in zip(new, old, (mx, my, mx, my))))
+
+    def initial(self, eps0: torch.Tensor, C: torch.Tensor) -> _Duals:
+        """The potentials at the largest eps from zero potentials (geomloss), for the problems C (ids)."""
+        x, y, xo, yo = self.x, self.y, self.xo, self.yo
+        zero_x, zero_y = torch.zeros_like(self.a_log), torch.zeros_like(self.b_log)
+        return _Duals(self.soft(eps0, x, xo, y, yo, self.b_log, C), self.soft(eps0, y, yo, x, xo, self.a_log, C),
+                      self.soft(eps0, x, xo, x, xo, self.a_log, C) if self.debias else zero_x,
+                      self.soft(eps0, y, yo, y, yo, self.b_log, C) if self.debias else zero_y)
+
+    def update(self, eps_k: torch.Tensor, st: _Duals, act: torch.Tensor, avg: torch.Tensor,
+               reuse: torch.Tensor) -> _Duals:
+        """One Sinkhorn update of the problems in ``act`` [K] bool (the others keep their potentials).
+        avg [K]: symmetric (Jacobi, averaged) update as geomloss' schedule levels; else at the final
+        eps alternating (Gauss-Seidel) for the cross potentials, which converges about twice as fast.
+        reuse [K]: f_aa kept as it is (converged, x fixed)."""
+        x, y, xo, yo, xid, yid = self.x, self.y, self.xo, self.yo, self.xid, self.yid
+        A = act.nonzero()[:, 0]
+        ex, ey = self.rows(eps_k, xid), self.rows(eps_k, yid)
+        avg_x, avg_y = self.rows(avg, xid).bool(), self.rows(avg, yid).bool()
+        ft_ba = self.soft(eps_k, x, xo, y, yo, self.b_log + st.g_ab / ey, A)
+        gt_ab = self.soft(eps_k, y, yo, x, xo, self.a_log + torch.where(avg_x, st.f_ba, ft_ba) / ex, A)
+        if self.debias:
+            ft_aa = self.soft(eps_k, x, xo, x, xo, self.a_log + st.f_aa / ex, (act & ~reuse).nonzero()[:, 0])
+            ft_aa = torch.where(self.rows(reuse, xid).bool(), st.f_aa, ft_aa)
+            gt_bb = self.soft(eps_k, y, yo, y, yo, self.b_log + st.g_bb / ey, A)
+        else:
+            ft_aa, gt_bb = st.f_aa, st.g_bb
+        half = lambda u, v: 0.5 * (u + v)  # noqa: E731
+        new = _Duals(torch.where(avg_x, half(st.f_ba, ft_ba), ft_ba), torch.where(avg_y, half(st.g_ab, gt_ab), gt_ab),
+                     half(st.f_aa, ft_aa), half(st.g_bb, gt_bb))
+        return self.where(act, new, st)
+
+
+def _check_packed(x, y, x_off, y_off, cfg: SinkhornConfig, blur):
+    """Validated offsets, sizes and per-problem blur of :func:`sinkhorn_batched`'s inputs:
+    (x_off [K+1], y_off [K+1], n [K], m [K], blur_k [K] float64 on the CPU)."""
+    if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
+        raise ValueError(f"sinkhorn: x [R, D] and y [C, D] must share D, got {list(x.shape)} and {list(y.shape)}")
+    x_off, y_off = _check_offsets(x_off, len(x), "x_off"), _check_offsets(y_off, len(y), "y_off")
+    K = len(x_off) - 1
+    if len(y_off) - 1 != K:
+        raise ValueError(f"sinkhorn: x_off has {K} problems, y_off {len(y_off) - 1}")
+    n, m = x_off.diff(), y_off.diff()
+    if bool((n == 0).any() | (m == 0).any()):
+        k = int(((n == 0) | (m == 0)).nonzero()[0])
+        raise ValueError(f"sinkhorn: empty point cloud (problem {k}: N={int(n[k])}, M={int(m[k])})")
+    if not (torch.isfinite(x).all() and torch.isfinite(y).all()):
+        raise ValueError("sinkhorn: non-finite coordinates in the input")
+    blur_k = torch.full((K,), cfg.blur, dtype=torch.float64) if blur is None else \
+        torch.as_tensor(blur, dtype=torch.float64).cpu().reshape(K)
+    if not bool(((blur_k > 0) & torch.isfinite(blur_k)).all()):
+        raise ValueError("sinkhorn: every problem's blur must be positive and finite")
+    return x_off, y_off, n, m, blur_k
+
+
+def _warm_start(P: _Packed, init: Potentials | None, eps_final: torch.Tensor, x_fixed: bool, grad_x: bool):
+    """(duals, warm [K], reuse [K]): ``init``'s potentials where they are of these problems at the same
+    final eps (warm), else zeros. reuse: f_aa depends on x alone, so with x fixed it is kept, but only
+    where it had converged (a cold eps-scaling solve leaves it off by as much as the divergence itself
+    at large blur, and a stale f_aa biases every later value: the reported loss went negative)."""
+    K = P.K
+    warm = torch.zeros(K, dtype=torch.bool)
+    reuse = warm.clone()
+    if init is None or len(init.f_ba) != len(P.x) or len(init.g_ab) != len(P.y) \
+            or (init.x_off is not None and not torch.equal(init.x_off.cpu(), P.xo)) \
+            or (init.y_off is not None and not torch.equal(init.y_off.cpu(), P.yo)):
+        return P.zeros(), warm, reuse
+    ie = torch.as_tensor(init.eps, dtype=torch.float64).cpu().reshape(-1).expand(K)
+    warm = (ie - eps_final).abs() <= 1e-12 * eps_final
+    if x_fixed and not grad_x:
+        reuse = warm & torch.as_tensor(init.converged).cpu().reshape(-1).expand(K).bool()
+    return _Duals(init.f_ba, init.g_ab, init.f_aa, init.g_bb), warm, reuse
+
+
+def _schedules(P: _Packed, warm: torch.Tensor, eps_final: torch.Tensor, blur_k: torch.Tensor, diameter,
+               cfg: SinkhornConfig) -> tuple[list[list[float]], list[int]]:
+    """Each problem's eps per step and how many of its first steps are symmetric (averaged): a cold
+    problem runs geomloss' schedule (:func:`epsilon_schedule`, diameter^2 down to blur^2) and
+    ``extra_iters`` more at the final eps; a warm one ``warm_iters`` alternating steps at the final eps."""
+    cold = ~warm
+    diams = diameters_of(P.x, P.xo, P.y, P.yo) if bool(cold.any()) and diameter is None else None
+    scheds, n_avg = [], []
+    for k in range(P.K):
+        ef, bk = float(eps_final[k]), float(blur_k[k])
+        if cold[k]:
+            d = float(diameter[k]) if diameter is not None else diams[k]
+            s = epsilon_schedule(d, bk, cfg.scaling)
+            scheds.append(s + [ef] * cfg.extra_iters)
+            n_avg.append(len(s))
+        else:
+            scheds.append([ef] * cfg.warm_iters)
+            n_avg.append(0)
+    return scheds, n_avg
+
+
+def _converge(P: _Packed, st: _Duals, eps_final: torch.Tensor, reuse: torch.Tensor, cfg: SinkhornConfig,
+              iters: torch.Tensor) -> tuple[_Duals, torch.Tensor]:
+    """Alternating updates at the final eps until, per problem, the largest change of any potential in
+    one iteration is at most ``tol * eps`` (floored at a few ulps of the potentials' magnitude for
+    float32), or ``max_iters``. Counts into ``iters`` [K]; returns the duals and converged [K]."""
+    no = torch.zeros(P.K, dtype=torch.bool)
+    converged, pending = no.clone(), ~no
+    floor = 8 * torch.finfo(P.x.dtype).eps
+    ids = (P.xid, P.yid, P.xid, P.yid)
+    for _ in range(cfg.max_iters):
+        if not pending.any():
+            break
+        new = P.update(eps_final, st, pending, no, reuse)
+        change = torch.stack([segment_reduce((u - v).abs(), i, P.K, "amax") for u, v, i in zip(new, st, ids)]).amax(0)
+        scale = torch.stack([segment_reduce(u.abs(), i, P.K, "amax") for u, i in zip(new, ids)]).amax(0)
+        st = new
+        iters += pending.long()
+        done = pending & (change.double().cpu() <= torch.maximum(cfg.tol * eps_final, floor * scale.double().cpu()))
+        converged |= done
+        pending &= ~done
+    return st, converged
+
+
+def _extrapolate(P: _Packed, st: _Duals, eps_final: torch.Tensor, reuse: torch.Tensor, a: torch.Tensor,
+                 b: torch.Tensor, grad_x: bool, grad_y: bool):
+    """The last full update, with barycentres where a gradient is wanted: (value [K], grad_x [R, D] or
+    None, grad_y [C, D] or None, duals). Debiased: ``S = <a, f_ba - f_aa> + <b, g_ab - g_bb>``,
+    ``grad_y S = b (T_bb - T_ba)``; without debiasing ``OT = <a, f_ba> + <b, g_ab>``,
+    ``grad_y OT = b (y - T_ba)`` (and alike for x)."""
+    x, y, xo, yo, xid, yid, K = P.x, P.y, P.xo, P.yo, P.xid, P.yid, P.K
+    ex, ey = P.rows(eps_final, xid), P.rows(eps_final, yid)
+    every = torch.arange(K)
+
+    def last(q, qo, r, ro, h, bary, act=every):
+        return P.soft(eps_final, q, qo, r, ro, h, act, bary=True) if bary else \
+            (P.soft(eps_final, q, qo, r, ro, h, act), None)
+
+    f_ba, T_ab = last(x, xo, y, yo, P.b_log + st.g_ab / ey, grad_x)
+    g_ab, T_ba = last(y, yo, x, xo, P.a_log + st.f_ba / ex, grad_y)
+    if P.debias:
+        f_aa, T_aa = last(x, xo, x, xo, P.a_log + st.f_aa / ex, grad_x, (~reuse).nonzero()[:, 0])
+        f_aa = torch.where(P.rows(reuse, xid).bool(), st.f_aa, f_aa)
+        g_bb, T_bb = last(y, yo, y, yo, P.b_log + st.g_bb / ey, grad_y)
+        value = segment_reduce(a * (f_ba - f_aa), xid, K, "sum") + segment_reduce(b * (g_ab - g_bb), yid, K, "sum")
+        gx = a[:, None] * (T_aa - T_ab) if grad_x else None
+        gy = b[:, None] * (T_bb - T_ba) if grad_y else None
+    else:
+        f_aa, g_bb = st.f_aa, st.g_bb
+        value = segment_reduce(a * f_ba, xid, K, "sum") + segment_reduce(b * g_ab, yid, K, "sum")
+        gx = a[:, None] * (x - T_ab) if grad_x else None
+        gy = b[:, None] * (y - T_ba) if grad_y else None
+    return value, gx, gy, _Duals(f_ba, g_ab, f_aa, g_bb)
+
+
 @torch.no_grad()
 def sinkhorn_batched(x: torch.Tensor, y: torch.Tensor, x_off: torch.Tensor | None, y_off: torch.Tensor | None,
                      cfg: SinkhornConfig = SinkhornConfig(), a: torch.Tensor | None = None,
@@ -295,152 +489,42 @@ def sinkhorn_batched(x: torch.Tensor, y: torch.Tensor, x_off: torch.Tensor | Non
     Each problem follows exactly the steps :func:`sinkhorn` takes on it alone (its own eps schedule,
     warm start, convergence test and iteration count); every soft-min of a step is one kernel call
     over the problems still iterating. Returns values [K], packed gradients, packed potentials.
+
+    The solve: warm start (:func:`_warm_start`), each problem's schedule (:func:`_schedules`), the
+    initialization of the cold ones at their largest eps, the schedule's steps, the convergence loop
+    at the final eps (:func:`_converge`, ``tol`` > 0), and the last extrapolation (:func:`_extrapolate`).
     """
-    if x.ndim != 2 or y.ndim != 2 or x.shape[1] != y.shape[1]:
-        raise ValueError(f"sinkhorn: x [R, D] and y [C, D] must share D, got {list(x.shape)} and {list(y.shape)}")
-    x_off, y_off = _check_offsets(x_off, len(x), "x_off"), _check_offsets(y_off, len(y), "y_off")
-    K = len(x_off) - 1
-    if len(y_off) - 1 != K:
-        raise ValueError(f"sinkhorn: x_off has {K} problems, y_off {len(y_off) - 1}")
-    n, m = x_off.diff(), y_off.diff()
-    if bool((n == 0).any() | (m == 0).any()):
-        k = int(((n == 0) | (m == 0)).nonzero()[0])
-        raise ValueError(f"sinkhorn: empty point cloud (problem {k}: N={int(n[k])}, M={int(m[k])})")
-    if not (torch.isfinite(x).all() and torch.isfinite(y).all()):
-        raise ValueError("sinkhorn: non-finite coordinates in the input")
+    x_off, y_off, n, m, blur_k = _check_packed(x, y, x_off, y_off, cfg, blur)
     backend = pick_backend(cfg, x)
-    blur_k = torch.full((K,), cfg.blur, dtype=torch.float64) if blur is None else \
-        torch.as_tensor(blur, dtype=torch.float64).cpu().reshape(K)
-    if not bool(((blur_k > 0) & torch.isfinite(blur_k)).all()):
-        raise ValueError("sinkhorn: every problem's blur must be positive and finite")
     if backend == "geomloss":
         return _batched_geomloss(x, y, x_off, y_off, cfg, a, b, blur_k, diameter, grad_x, grad_y)
-    sm = softmin_native if backend == "native" else softmin_torch
     dev = x.device
-    xid, yid = segment_ids(x_off).to(dev), segment_ids(y_off).to(dev)
-    xo, yo = x_off, y_off  # host-side: the kernels take them from there
-    a = (1.0 / n.to(x))[xid.cpu()].to(dev) if a is None else a.to(x)
-    b = (1.0 / m.to(y))[yid.cpu()].to(dev) if b is None else b.to(y)
-    a_log, b_log = a.log(), b.log()
+    K = len(x_off) - 1
+    xid, yid = segment_ids(x_off), segment_ids(y_off)
+    a = (1.0 / n.to(x))[xid].to(dev) if a is None else a.to(x)
+    b = (1.0 / m.to(y))[yid].to(dev) if b is None else b.to(y)
+    P = _Packed(x, y, x_off, y_off, a.log(), b.log(), softmin_native if backend == "native" else softmin_torch,
+                cfg.debias)
     eps_final = blur_k.square()  # [K] float64, on the CPU (schedules are host-side)
-    debias = cfg.debias
-    rows = lambda t, ids: t.to(device=dev, dtype=x.dtype)[ids]  # noqa: E731  per-problem -> per-row
-
-    def soft(eps_k, q, qo, r, ro, h, act, bary=False):
-        return sm(eps_k.to(x.dtype), q, r, h, bary=bary, x_off=qo, y_off=ro, active=act)
-
-    def update(eps_k, st, act, avg, reuse):
-        """One Sinkhorn update of the problems in ``act`` [K] bool (the others keep their potentials).
-        avg [K]: symmetric (Jacobi, averaged) update as geomloss' schedule levels; else at the final
-        eps alternating (Gauss-Seidel) for the cross potentials, which converges about twice as fast."""
-        f_ba, g_ab, f_aa, g_bb = st
-        A = act.nonzero()[:, 0]
-        ex, ey = rows(eps_k, xid), rows(eps_k, yid)
-        avg_x, avg_y = rows(avg, xid).bool(), rows(avg, yid).bool()
-        ft_ba = soft(eps_k, x, xo, y, yo, b_log + g_ab / ey, A)
-        gt_ab = soft(eps_k, y, yo, x, xo, a_log + torch.where(avg_x, f_ba, ft_ba) / ex, A)
-        if debias:
-            ft_aa = soft(eps_k, x, xo, x, xo, a_log + f_aa / ex, (act & ~reuse).nonzero()[:, 0])
-            ft_aa = torch.where(rows(reuse, xid).bool(), f_aa, ft_aa)
-            gt_bb = soft(eps_k, y, yo, y, yo, b_log + g_bb / ey, A)
-        else:
-            ft_aa, gt_bb = f_aa, g_bb
-        half = lambda u, v: 0.5 * (u + v)  # noqa: E731
-        new = (torch.where(avg_x, half(f_ba, ft_ba), ft_ba), torch.where(avg_y, half(g_ab, gt_ab), gt_ab),
-               half(f_aa, ft_aa), half(g_bb, gt_bb))
-        ax, ay = rows(act, xid).bool(), rows(act, yid).bool()
-        return tuple(torch.where(mask, u, v) for u, v, mask in zip(new, st, (ax, ay, ax, ay)))
-
-    no = torch.zeros(K, dtype=torch.bool)
-    warm, reuse = no.clone(), no.clone()
-    if init is not None and len(init.f_ba) == len(x) and len(init.g_ab) == len(y) \
-            and (init.x_off is None or torch.equal(init.x_off.cpu(), x_off)) \
-            and (init.y_off is None or torch.equal(init.y_off.cpu(), y_off)):
-        ie = torch.as_tensor(init.eps, dtype=torch.float64).cpu().reshape(-1).expand(K)
-        warm = (ie - eps_final).abs() <= 1e-12 * eps_final
-        # f_aa depends on x alone; reusing it is exact only once it has converged (a cold eps-scaling
-        # solve leaves it off by as much as the divergence itself at large blur, and a stale f_aa
-        # biases every later value: the reported loss went negative)
-        if x_fixed and not grad_x:
-            reuse = warm & torch.as_tensor(init.converged).cpu().reshape(-1).expand(K).bool()
-        st = (init.f_ba, init.g_ab, init.f_aa, init.g_bb)
-    else:
-        st = (x.new_zeros(len(x)), y.new_zeros(len(y)), x.new_zeros(len(x)), y.new_zeros(len(y)))
-    cold = ~warm
+    st, warm, reuse = _warm_start(P, init, eps_final, x_fixed, grad_x)
+    scheds, n_avg = _schedules(P, warm, eps_final, blur_k, diameter, cfg)
     iters = torch.zeros(K, dtype=torch.long)
-    scheds, n_avg = [], []
-    diams = None
-    if cold.any() and diameter is None:
-        diams = diameters_of(x, xo, y, yo)
-    for k in range(K):
-        ef, bk = float(eps_final[k]), float(blur_k[k])
-        if cold[k]:
-            d = float(diameter[k]) if diameter is not None else diams[k]
-            s = epsilon_schedule(d, bk, cfg.scaling)
-            scheds.append(s + [ef] * cfg.extra_iters)
-            n_avg.append(len(s))
-        else:
-            scheds.append([ef] * cfg.warm_iters)
-            n_avg.append(0)
+    cold = ~warm
     if cold.any():
-        # initialization at the largest eps, from zero potentials (geomloss)
         eps0 = torch.tensor([s[0] if s else 1.0 for s in scheds], dtype=torch.float64)
-        C = cold.nonzero()[:, 0]
-        cx, cy = rows(cold, xid).bool(), rows(cold, yid).bool()
-        zero_x, zero_y = torch.zeros_like(a_log), torch.zeros_like(b_log)
-        init_f = (soft(eps0, x, xo, y, yo, b_log, C), soft(eps0, y, yo, x, xo, a_log, C),
-                  soft(eps0, x, xo, x, xo, a_log, C) if debias else zero_x,
-                  soft(eps0, y, yo, y, yo, b_log, C) if debias else zero_y)
-        st = tuple(torch.where(mask, u, v) for u, v, mask in zip(init_f, st, (cx, cy, cx, cy)))
+        st = P.where(cold, P.initial(eps0, cold.nonzero()[:, 0]), st)
         iters += cold.long()
     for r in range(max((len(s) for s in scheds), default=0)):
         act = torch.tensor([r < len(s) for s in scheds])
         eps_r = torch.tensor([s[r] if r < len(s) else 1.0 for s in scheds], dtype=torch.float64)
-        st = update(eps_r, st, act, torch.tensor([r < na for na in n_avg]), reuse)
+        st = P.update(eps_r, st, act, torch.tensor([r < na for na in n_avg]), reuse)
         iters += act.long()
-    converged = no.clone()
+    converged = torch.zeros(K, dtype=torch.bool)
     if cfg.tol > 0:
-        # convergence test at the final eps, per problem: the largest change of any potential in one
-        # iteration against tol * eps (floored at a few ulps of the potentials' magnitude for float32)
-        floor = 8 * torch.finfo(x.dtype).eps
-        pending = ~no
-        for _ in range(cfg.max_iters):
-            if not pending.any():
-                break
-            new = update(eps_final, st, pending, no, reuse)
-            ids = (xid, yid, xid, yid)
-            change = torch.stack([segment_reduce((u - v).abs(), i, K, "amax") for u, v, i in zip(new, st, ids)]).amax(0)
-            scale = torch.stack([segment_reduce(u.abs(), i, K, "amax") for u, i in zip(new, ids)]).amax(0)
-            st = new
-            iters += pending.long()
-            done = pending & (change.double().cpu() <= torch.maximum(cfg.tol * eps_final, floor * scale.double().cpu()))
-            converged |= done
-            pending &= ~done
-    f_ba, g_ab, f_aa, g_bb = st
-    # last extrapolation (full update), with barycentres where a gradient is wanted
-    ex, ey = rows(eps_final, xid), rows(eps_final, yid)
-    every = torch.arange(K)
-
-    def last(q, qo, r, ro, h, bary, act=every):
-        return soft(eps_final, q, qo, r, ro, h, act, bary=True) if bary else (soft(eps_final, q, qo, r, ro, h, act), None)
-
-    f_ba_new, T_ab = last(x, xo, y, yo, b_log + g_ab / ey, grad_x)
-    g_ab_new, T_ba = last(y, yo, x, xo, a_log + f_ba / ex, grad_y)
-    if debias:
-        f_aa_new, T_aa = last(x, xo, x, xo, a_log + f_aa / ex, grad_x, (~reuse).nonzero()[:, 0])
-        f_aa_new = torch.where(rows(reuse, xid).bool(), f_aa, f_aa_new)
-        g_bb_new, T_bb = last(y, yo, y, yo, b_log + g_bb / ey, grad_y)
-        value = segment_reduce(a * (f_ba_new - f_aa_new), xid, K, "sum") + \
-            segment_reduce(b * (g_ab_new - g_bb_new), yid, K, "sum")
-        gx = a[:, None] * (T_aa - T_ab) if grad_x else None
-        gy = b[:, None] * (T_bb - T_ba) if grad_y else None
-    else:
-        f_aa_new, g_bb_new = f_aa, g_bb
-        value = segment_reduce(a * f_ba_new, xid, K, "sum") + segment_reduce(b * g_ab_new, yid, K, "sum")
-        gx = a[:, None] * (x - T_ab) if grad_x else None
-        gy = b[:, None] * (y - T_ba) if grad_y else None
+        st, converged = _converge(P, st, eps_final, reuse, cfg, iters)
+    value, gx, gy, st = _extrapolate(P, st, eps_final, reuse, a, b, grad_x, grad_y)
     iters += 1
-    pot = Potentials(f_ba_new, g_ab_new, f_aa_new, g_bb_new, eps_final, iters, converged, x_off, y_off)
+    pot = Potentials(st.f_ba, st.g_ab, st.f_aa, st.g_bb, eps_final, iters, converged, x_off, y_off)
     bad = ~torch.isfinite(value)
     if bad.any():
         k = int(bad.nonzero()[0])
