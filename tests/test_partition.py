@@ -696,3 +696,28 @@ def test_register_stage_names_the_clusters_file_when_its_normals_do_not_fit(tmp_
     save_npz(tmp_path / "clusters.npz", labels=np.zeros(60, np.int64), normals=np.zeros((59, 3), np.float32))
     with pytest.raises(ValueError, match=r"clusters\.npz: 'normals' has shape \(59, 3\)"):
         run_register(tmp_path / "c.ply", tmp_path / "clusters.npz", tmp_path / "s.ply", tmp_path / "r.npz", None, {})
+
+
+def test_a_thinned_selection_reaches_stylize_enlarged():
+    """select_with thins a style far denser than the content, and stylize (a collage: no flow) enlarges
+    the kept Gaussians by exactly the cluster's gain; uncapped, nothing is enlarged."""
+    from wast3d.procedural import make_scene
+    from wast3d.stylize import StylizeConfig, stylize
+
+    content = make_scene("content", "ant", 600)
+    style = make_scene("style", "pebbles", 12000, seed=0)
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
+                                                                           refine_iterations=5))
+    mapped = reg.apply(content.means.double(), labels)
+    full = select_with(SelectConfig(max_per_point=0), mapped, labels, style.means.double(), reg.style_spacing)
+    capped = select_with(SelectConfig(max_per_point=2), mapped, labels, style.means.double(), reg.style_spacing)
+    counts = torch.bincount(labels)
+    assert bool((capped.sizes <= torch.ceil(2 * counts.double()).long()).all()) and capped.sizes.sum() < full.sizes.sum()
+    assert bool((capped.log_gain > 0).any()) and not bool(full.log_gain.any())
+    cfg = StylizeConfig(iterations=0)
+    out = stylize(content, labels, style, reg, capped, cfg, progress=False)
+    raw = stylize(content, labels, style, reg, replace(capped, log_gain=torch.zeros_like(capped.log_gain)), cfg,
+                  progress=False)
+    assert torch.allclose(out.scene.log_scales - raw.scene.log_scales,
+                          capped.log_gain[out.labels][:, None].to(out.scene.log_scales).expand(-1, 3), atol=1e-5)
