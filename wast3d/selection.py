@@ -179,10 +179,9 @@ def thin(offsets: torch.Tensor, indices: torch.Tensor, counts: torch.Tensor, sty
             if bool(ok.any()):
                 gain[i] = float(torch.log((d_kept[ok] / d_all[ok]).median()).clamp_min(0.0))
         kept.append(sel[pick])
-    new_sizes = torch.tensor([len(k) for k in kept], dtype=torch.int64)
-    off = torch.zeros(K + 1, dtype=torch.int64)
-    off[1:] = torch.cumsum(new_sizes, 0)
-    return Selection(off, torch.cat(kept) if kept else indices[:0], gain)
+    cluster = torch.repeat_interleave(torch.arange(K), torch.tensor([len(k) for k in kept], dtype=torch.int64))
+    off, idx = _csr(cluster, torch.cat(kept) if kept else indices[:0], K)
+    return Selection(off, idx, gain)
 
 
 def select_with(cfg: SelectConfig, mapped: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
