@@ -461,3 +461,41 @@ def test_rigid_parts_recover_a_turn_and_move_whole():
         a, b = yy[parts == p].double(), res.positions[parts == p].double()
         assert torch.allclose(torch.cdist(a, a), torch.cdist(b, b), atol=1e-4)
         assert float((b - a).norm(dim=1).max()) > 1e-3
+
+
+def test_smoothing_within_a_radius_reaches_as_far_whatever_the_density():
+    """neighbour_graph's radius: a pass never averages over a neighbour farther than it (out-of-reach
+    slots hold the row itself), so a step diffuses as far on a sparse style as on a dense one, where
+    the k nearest alone span a distance set by the density; smoothing_reach gives it in relief lengths."""
+    from wast3d.procedural import style_pebbles
+    from wast3d.registration import relief
+    from wast3d.stylize import StylizeConfig, neighbour_graph, smooth_displacements, smoothing_reach
+
+    g = torch.Generator().manual_seed(0)
+    dense, sparse = torch.rand(4000, 3, generator=g), torch.rand(250, 3, generator=g)
+    dense[:, 2] *= 0.05
+    sparse[:, 2] *= 0.05
+    r = 0.08
+    for pts in (dense, sparse):
+        nb = neighbour_graph([pts], 16, [r])
+        d = (pts[nb] - pts[:, None]).norm(dim=-1)
+        assert float(d.max()) <= r and bool((nb[:, 0] == torch.arange(len(pts))).all())
+        unlimited = neighbour_graph([pts], 16)
+        assert torch.equal(neighbour_graph([pts], 16, [None]), unlimited)
+    # the k nearest of the sparse style reach farther than the radius; within it they are cut
+    assert float((sparse[neighbour_graph([sparse], 16)] - sparse[:, None]).norm(dim=-1).max()) > 2 * r
+    # a step that is a spike at one Gaussian spreads no farther than passes x radius
+    step = torch.zeros(len(sparse), 3, dtype=torch.float64)
+    step[0] = 1.0
+    out = smooth_displacements(step, neighbour_graph([sparse], 16, [r]), 3)
+    moved = out.abs().sum(1) > 0
+    assert float((sparse[moved] - sparse[0]).norm(dim=1).max()) <= 3 * r + 1e-6
+    assert float(out[:, 0].sum()) > 0
+    # the reach in style units: smooth_radius relief lengths; off without passes or radius
+    style = style_pebbles(3000, seed=0)
+    L = relief(style.means, up="z").length
+    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4, smooth_radius=0.5)) == pytest.approx(0.5 * L)
+    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=0, smooth_radius=0.5)) is None
+    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4)) is None
+    with pytest.raises(ValueError, match="smooth_radius"):
+        StylizeConfig(smooth_radius=-1.0)
