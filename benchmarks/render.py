@@ -7,11 +7,14 @@ Scenes: N Gaussians on the surface of a procedural content mesh (a trained-objec
 matched to the sample spacing), seen by an orbit camera that frames the object. Each (backend, N)
 runs in a fresh subprocess so its peak resident memory (VmHWM, reset before the timed part) is its
 own. Writes ``results/benchmarks/render.csv``; times are medians over ``--repeats`` after one warm-up.
-``--previous REV`` adds the backend ``native@REV``: the native kernels of git revision REV, built from
-its ``wast3d/csrc`` into a cache of their own, timed in the same run. Besides the whole rasterizer
-(projection, binning and compositing), ``composite_*_s`` time the native compositing kernel alone (the
-part the C code does). The ``*_vs_native`` columns give each time relative to the native backend's in
-the same run.
+``--previous REV`` adds the backend ``native@REV``: the whole rasterizer of git revision REV (its
+``wast3d`` package, projection and binning included, and its native kernels built from its ``csrc``
+into a cache of their own), timed in the same run, each worker importing its own version.
+``--scene PLY`` times a given scene (e.g. a trained one: ``results/scenes/lego/scene.ply``, whose
+anisotropic Gaussians the procedural mesh does not have) instead of the procedural mesh; ``--sizes``
+then caps its Gaussian count (a random subset). Besides the whole rasterizer (projection, binning and
+compositing), ``composite_*_s`` time the native compositing kernel alone (the part the C code does).
+The ``*_vs_native`` columns give each time relative to the native backend's in the same run.
 """
 
 from __future__ import annotations
@@ -33,27 +36,20 @@ def _rss(field: str) -> float:
     return float("nan")
 
 
-def previous_kernels(rev: str) -> None:
-    """Make this process's native kernels those of git revision ``rev`` (built from its csrc)."""
+def previous_package(rev: str) -> str:
+    """A temporary folder holding the ``wast3d`` package of git revision ``rev`` (removed at exit)."""
     import atexit
-    import ctypes
     import shutil
     import tempfile
 
-    from wast3d import _native
-
-    src = Path(tempfile.mkdtemp(prefix="wast3d-csrc-"))
-    atexit.register(shutil.rmtree, src, ignore_errors=True)
-    files = subprocess.run(["git", "-C", str(ROOT), "ls-tree", "--name-only", f"{rev}:wast3d/csrc"],
-                           capture_output=True, text=True, check=True).stdout.split()
-    for f in files:
-        (src / f).write_bytes(subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:wast3d/csrc/{f}"],
-                                             capture_output=True, check=True).stdout)
-    libs = {}
-    _native.load = lambda name: libs.setdefault(name, ctypes.CDLL(str(_native.build(name, csrc=src))))
+    dst = tempfile.mkdtemp(prefix="wast3d-previous-")
+    atexit.register(shutil.rmtree, dst, ignore_errors=True)
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "wast3d"], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", dst], input=archive, check=True)
+    return dst
 
 
-def worker(backend: str, n: int, size: int, repeats: int, mesh: str) -> dict:
+def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: str | None = None) -> dict:
     import torch
 
     torch.set_flush_denormal(True)
@@ -62,11 +58,15 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str) -> dict:
     from wast3d.render import fit_orbit
 
     label = backend
-    if backend.startswith("native@"):
-        previous_kernels(backend.split("@", 1)[1])
-        backend = "native"
+    backend = backend.split("@", 1)[0]  # native@REV: this process imports REV's package (main sets PYTHONPATH)
+    if scene_ply:
+        from wast3d.ply import read_ply
 
-    scene = content_scene(mesh, n, seed=0)
+        scene = read_ply(scene_ply)
+        if len(scene) > n:
+            scene = scene.subset(torch.randperm(len(scene), generator=torch.Generator().manual_seed(0))[:n])
+    else:
+        scene = content_scene(mesh, n, seed=0)
     cam = fit_orbit(scene, 3, size)[1]
     params = [t.requires_grad_(True) for t in scene.tensors().values()]
     rasterize(scene, cam, backend=backend)["rgb"].sum().backward()  # warm-up (builds kernels, caches)
@@ -100,7 +100,9 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str) -> dict:
             (out.sum() + T.sum()).backward()
             cf.append(t1 - t0)
             cb.append(time.perf_counter() - t1)
-    return {"backend": label, "gaussians": n, "width": size, "height": size, "threads": torch.get_num_threads(),
+    import wast3d
+
+    return {"backend": label, "package": str(Path(wast3d.__file__).parent), "gaussians": len(scene), "width": size, "height": size, "threads": torch.get_num_threads(),
             "visible": int(r["visible_ids"].numel()), "forward_s": med(fwd), "forward_backward_s": med(fb),
             "composite_forward_s": med(cf), "composite_backward_s": med(cb),
             "peak_mb_above_baseline": peak - base, "peak_rss_mb": peak}
@@ -113,22 +115,29 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--mesh", default="sphere")
-    ap.add_argument("--previous", help="also time the native kernels of this git revision (backend native@REV)")
+    ap.add_argument("--previous", help="also time the rasterizer of this git revision (backend native@REV)")
+    ap.add_argument("--scene", help="a Gaussian PLY to time instead of the procedural mesh")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "render.csv")
     ap.add_argument("--_worker", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a._worker:
-        print(json.dumps(worker(a._worker[0], int(a._worker[1]), a.resolution, a.repeats, a.mesh)))
+        print(json.dumps(worker(a._worker[0], int(a._worker[1]), a.resolution, a.repeats, a.mesh, a.scene)))
         return
     import pandas as pd
 
     rows = []
     backends = a.backends + ([f"native@{a.previous}"] if a.previous else [])
+    env_previous = None
+    if a.previous:
+        import os
+
+        env_previous = {**os.environ, "PYTHONPATH": previous_package(a.previous)}
     for n in a.sizes:
         for b in backends:
             cmd = [sys.executable, __file__, "--_worker", b, str(n), "--resolution", str(a.resolution),
                    "--repeats", str(a.repeats if b.startswith("native") else max(1, a.repeats // 2)), "--mesh", a.mesh]
-            out = subprocess.run(cmd, capture_output=True, text=True)
+            cmd += ["--scene", a.scene] if a.scene else []
+            out = subprocess.run(cmd, capture_output=True, text=True, env=env_previous if "@" in b else None)
             if out.returncode:
                 print(out.stderr, file=sys.stderr)
                 continue

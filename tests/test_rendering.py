@@ -167,3 +167,34 @@ def test_projection_matches_gsplat_reference():
     assert torch.allclose(means2d[0, p.ids], p.means2d, atol=1e-9)
     assert torch.allclose(conics[0, p.ids], p.conics, rtol=1e-7, atol=1e-9)
     assert torch.allclose(depths[0, p.ids], p.depths)
+
+
+def test_boxes_per_axis_and_clones_drawn_in_a_fixed_order():
+    """A Gaussian's box has its own x and y half-widths (k sqrt(Sigma_xx), k sqrt(Sigma_yy) of the
+    dilated 2D covariance: an elongated Gaussian is binned into the tiles along it only), and
+    Gaussians at one depth (clones, as densification makes them) are drawn in their index order, so a
+    Gaussian culled elsewhere in the scene changes no pixel."""
+    from wast3d.cameras import Camera
+    from wast3d.gaussians import GaussianScene
+
+    cam = Camera(torch.eye(4), 100.0, 100.0, 32.0, 40.0, 64, 64)  # the mean mid-way down a tile row
+    one = GaussianScene.from_activated(torch.tensor([[0.0, 0.0, 5.0]]), torch.tensor([[0.4, 0.02, 0.02]]),
+                                       torch.tensor([[1.0, 0.0, 0.0, 0.0]]), torch.tensor([0.9]), torch.rand(1, 3))
+    p = project(one.means, one.quats, one.scales, one.opacities, cam)
+    k = math.sqrt(2 * math.log(0.9 * 255))
+    assert p.radii[0].tolist() == [math.ceil(k * math.sqrt((100 * 0.4 / 5) ** 2 + 0.3)),
+                                   math.ceil(k * math.sqrt((100 * 0.02 / 5) ** 2 + 0.3))]
+    assert len(bin_tiles(p, 64, 64)[0]) == 4  # the row of tiles it lies along, not all 16
+
+    scene = random_scene(4000, seed=5, spread=0.3)
+    scene.means[:] = scene.means[:200].repeat(20, 1)  # clones: 20 at each depth, of other colours
+    cam = orbit_cameras(1, 3.0, 48, 48)[0]
+    extra = random_scene(1, seed=6)
+    R, t = cam.world_to_cam[:3, :3], cam.world_to_cam[:3, 3]
+    extra.means[0] = R.T @ (torch.tensor([0.3, 0.3, 1.0]) * 2.0 - t)  # drawn in the image's corner only
+    extra.log_scales[:] = math.log(0.005)
+    more = GaussianScene.concat([extra, scene])
+    a, b = rasterize(scene, cam), rasterize(more, cam)
+    assert len(b["visible_ids"]) == len(a["visible_ids"]) + 1
+    far = (b["rgb"] - a["rgb"]).abs().amax(-1) > 0
+    assert far.any() and not far[:36, :36].any()  # the extra drew its corner, and nothing of the clones changed

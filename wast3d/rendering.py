@@ -46,7 +46,8 @@ class Projected:
     """Per-Gaussian screen-space quantities; tensors of the visible Gaussians only.
 
     ids: [V] indices into the scene; means2d: [V, 2]; conics: [V, 3] (a, b, c) of the inverse 2D
-    covariance; depths: [V] camera z; radii: [V] pixel radius of the alpha >= 1/255 ellipse's box;
+    covariance; depths: [V] camera z; radii: [V, 2] half-widths (x, y) in pixels of the box of the
+    alpha >= 1/255 ellipse;
     opacities: [V].
     """
 
@@ -96,13 +97,13 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opac
     mx = fx * x / z + cx
     my = fy * y / z + cy
     with torch.no_grad():
-        mid = 0.5 * (a + c)
-        lam = mid + (mid * mid - det).clamp_min(0.1).sqrt()
-        # extent where o * exp(-d^2 / (2 lam)) >= 1/255 along the major axis
+        # the box of the ellipse where o exp(-d^T Sigma2d^-1 d / 2) >= 1/255, i.e. d^T Sigma2d^-1 d <= k^2:
+        # its half-widths are k sqrt(Sigma_xx) and k sqrt(Sigma_yy) (gsplat >= 1.5's per-axis radii)
         k = (2 * torch.log((op * 255.0).clamp_min(1.0))).sqrt()
-        radii = torch.ceil(k * lam.sqrt())
-        ok = (det > 0) & (radii > 0) & (mx + radii > 0) & (mx - radii < cam.width) & \
-             (my + radii > 0) & (my - radii < cam.height)
+        radii = torch.stack([torch.ceil(k * a.clamp_min(0).sqrt()), torch.ceil(k * c.clamp_min(0).sqrt())], -1)
+        rx, ry = radii.unbind(-1)
+        ok = (det > 0) & (rx > 0) & (ry > 0) & (mx + rx > 0) & (mx - rx < cam.width) & \
+             (my + ry > 0) & (my - ry < cam.height)
     sel = ok.nonzero().squeeze(1)
     det = det[sel]
     conics = torch.stack([c[sel] / det, -b[sel] / det, a[sel] / det], -1)
@@ -120,12 +121,12 @@ def bin_tiles(p: Projected, width: int, height: int, tile: int = TILE) -> tuple[
     dev = p.means2d.device
     if p.ids.numel() == 0:
         return torch.zeros(0, dtype=torch.int32, device=dev), torch.zeros(n_tiles + 1, dtype=torch.int64, device=dev)
-    m, r = p.means2d.detach(), p.radii
-    # pixels whose centre (i + .5) lies in [m - r, m + r]
-    px0 = torch.ceil(m[:, 0] - r - 0.5).clamp(0, width - 1).long()
-    px1 = torch.floor(m[:, 0] + r - 0.5).clamp(0, width - 1).long()
-    py0 = torch.ceil(m[:, 1] - r - 0.5).clamp(0, height - 1).long()
-    py1 = torch.floor(m[:, 1] + r - 0.5).clamp(0, height - 1).long()
+    m, rx, ry = p.means2d.detach(), p.radii[:, 0], p.radii[:, 1]
+    # pixels whose centre (i + .5) lies in the box [m - r, m + r]
+    px0 = torch.ceil(m[:, 0] - rx - 0.5).clamp(0, width - 1).long()
+    px1 = torch.floor(m[:, 0] + rx - 0.5).clamp(0, width - 1).long()
+    py0 = torch.ceil(m[:, 1] - ry - 0.5).clamp(0, height - 1).long()
+    py1 = torch.floor(m[:, 1] + ry - 0.5).clamp(0, height - 1).long()
     tx0, tx1, ty0, ty1 = px0 // tile, px1 // tile, py0 // tile, py1 // tile
     w = (tx1 - tx0 + 1).clamp_min(0)
     counts = w * (ty1 - ty0 + 1).clamp_min(0)
@@ -135,7 +136,8 @@ def bin_tiles(p: Projected, width: int, height: int, tile: int = TILE) -> tuple[
     off = torch.arange(total, device=dev) - start[g]
     tid = (ty0[g] + off // w[g]) * tx_n + tx0[g] + off % w[g]
     depth_rank = torch.empty_like(g[: len(counts)])
-    depth_rank[torch.argsort(p.depths.detach())] = torch.arange(len(counts), device=dev)
+    # stable: Gaussians at the same depth (clones) keep their order whatever else is culled
+    depth_rank[torch.argsort(p.depths.detach(), stable=True)] = torch.arange(len(counts), device=dev)
     key = tid * len(counts) + depth_rank[g]
     order = torch.argsort(key)
     gid = g[order].to(torch.int32)
@@ -202,7 +204,8 @@ class _NativeComposite(torch.autograd.Function):
         sfx = "_f64" if means2d.dtype == torch.float64 else "_f32"
         tensors = [x.detach().contiguous() for x in (means2d, conics, colors, opac)]
         gid, tile_off = gid.contiguous(), tile_off.contiguous()
-        radii = radii.to(means2d.dtype).contiguous()
+        # the kernel skips a Gaussian's tile rows beyond its box's y half-width
+        radii = (radii[:, 1] if radii.dim() == 2 else radii).to(means2d.dtype).contiguous()
         C = colors.shape[1]
         out = means2d.new_empty(height, width, C)
         T = means2d.new_empty(height, width)
@@ -269,10 +272,10 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     """Render ``scene`` from ``cam``.
 
     Returns ``rgb`` [H, W, 3], ``alpha`` [H, W], ``depth`` [H, W] (expected z), and for densification
-    ``means2d`` [V, 2] (retains grad), ``visible_ids`` [V] and ``radii`` [V].
-    ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
+    ``means2d`` [V, 2] (retains grad), ``visible_ids`` [V] and ``radii`` [V] (the larger half-width of
+    each one's box, in pixels). ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
     scene's degree. ``full_means2d=True`` returns gsplat's densification layout instead: ``means2d``
-    [1, N, 2] and ``radii`` [1, N, 2] for all Gaussians, with ``width``, ``height``, ``n_cameras``.
+    [1, N, 2] and ``radii`` [1, N, 2] (x and y half-widths, 0: not drawn) for all Gaussians, with ``width``, ``height``, ``n_cameras``.
     """
     backend = backend or default_backend(scene.device)
     deg = scene.sh_degree if sh_degree is None else min(sh_degree, scene.sh_degree)
@@ -302,10 +305,11 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     alpha = 1 - T
     image = out[..., :3] + T[..., None] * bg
     depth = torch.where(alpha > 1e-6, out[..., 3] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
-    out = {"rgb": image, "alpha": alpha, "depth": depth, "means2d": means2d, "visible_ids": p.ids, "radii": p.radii}
+    out = {"rgb": image, "alpha": alpha, "depth": depth, "means2d": means2d, "visible_ids": p.ids,
+           "radii": p.radii.amax(-1)}
     if full_means2d:
         radii = p.radii.new_zeros(1, len(scene), 2)
-        radii[0, p.ids] = p.radii[:, None].expand(-1, 2)
+        radii[0, p.ids] = p.radii
         out.update(means2d=full, radii=radii, width=cam.width, height=cam.height, n_cameras=1, gaussian_ids=p.ids)
     return out
 
