@@ -284,7 +284,8 @@ def test_flow_optimizer_steps_towards_the_transport_target():
     y = torch.rand(150, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.3], dtype=torch.float64)
     rgb_x, rgb_y = torch.full((200, 3), 0.5, dtype=torch.float64), torch.full((150, 3), 0.5, dtype=torch.float64)
     sk = SinkhornConfig(blur=0.3, tol=1e-6, max_iters=500)
-    cfg = StylizeConfig(features="xyz", iterations=1, optimizer="flow", lr=0.3, dtype="float64", sinkhorn=sk)
+    cfg = StylizeConfig(features="xyz", iterations=1, optimizer="flow", lr=0.3, dtype="float64", sinkhorn=sk,
+                        smooth_passes=0)  # the flow alone
     one = stylize_cluster(x, rgb_x, y, rgb_y, cfg)
     from wast3d.stylize import normalize_pair
 
@@ -293,7 +294,7 @@ def test_flow_optimizer_steps_towards_the_transport_target():
     expect = ((y - c) / r - 0.3 * len(y) * res.grad_y) * r + c
     assert torch.allclose(one.positions, expect, atol=1e-9)
     many = stylize_cluster(x, rgb_x, y, rgb_y, StylizeConfig(features="xyz", iterations=30, optimizer="flow", lr=0.3,
-                                                             dtype="float64", sinkhorn=sk))
+                                                             dtype="float64", sinkhorn=sk, smooth_passes=0))
     assert many.losses[-1] < 0.2 * many.losses[0] and min(many.losses) >= -1e-6 * many.losses[0]
     with pytest.raises(ValueError, match="stylize.optimizer"):
         StylizeConfig(optimizer="sgd")
@@ -496,6 +497,6 @@ def test_smoothing_within_a_radius_reaches_as_far_whatever_the_density():
     L = relief(style.means, up="z").length
     assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4, smooth_radius=0.5)) == pytest.approx(0.5 * L)
     assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=0, smooth_radius=0.5)) is None
-    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4)) is None
+    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4, smooth_radius=0.0)) is None
     with pytest.raises(ValueError, match="smooth_radius"):
         StylizeConfig(smooth_radius=-1.0)

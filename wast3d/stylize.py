@@ -23,6 +23,9 @@ For cluster i, in the registered (style) frame:
 - piecewise-rigid flow (``parts``, default on for a style whose relief is gentle, :func:`flow_parts`):
   the style is cut into parts about an element across, each moving by its Gaussians' best rigid
   motion towards their targets, so an element made of many trained Gaussians moves whole;
+- displacement smoothing (``smooth_passes``, default on where the parts are left out: blades, strands,
+  :func:`smooth_displacements`): each step averaged over the neighbours within ``smooth_radius`` relief
+  lengths, 16 times, so a blade's Gaussians move together and it still bends with the content.
   Clusters are independent terms of eq. 9 and both optimizers act per coordinate, so optimizing them
   together (one packed Sinkhorn solve per step over ``batch`` clusters, :func:`stylize_clusters`) is
   the same as optimizing the sum, and the same as one cluster after another;
@@ -88,11 +91,13 @@ class StylizeConfig:
     batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
     masses: str = "style-area"  # the style's Gaussians weigh their footprint (footprint_masses), the content's
     # points one each; "area": both by footprint; "uniform": both one each
-    smooth_k: int = 16  # displacement smoothing: neighbours (in the style's own positions) averaged over
-    smooth_passes: int = 0  # passes of that average per step (0: off); see smooth_displacements
+    smooth_k: int = 32  # displacement smoothing: neighbours (in the style's own positions) averaged over
+    smooth_passes: int = 16  # passes of that average per step (0: off); see smooth_displacements
     smooth_axis: str = "all"  # "all": the whole step is smoothed; "up": only its component along the style's up
-    smooth_radius: float = 0.0  # > 0: a pass averages only over neighbours within this many relief lengths (a reach in
-    # the style's units, whatever its density); 0: over all smooth_k neighbours
+    smooth_radius: float = 0.25  # > 0: a pass averages only over neighbours within this many relief lengths (a reach
+    # in the style's units, whatever its density); 0: over all smooth_k neighbours
+    smooth_with_parts: bool = False  # smoothing also where parts move the style (off: only where the parts are
+    # left out, steep reliefs or parts 0, whose Gaussians would otherwise each move on their own)
     parts: float = 0.8  # piecewise-rigid flow: the style cut into parts this many relief lengths across, each
     # moving as one (0: off); see style_parts
     parts_colour: float = 3.0  # the colour's weight in the parts' k-means (1: a colour step of 1 counts as one part across)
@@ -573,6 +578,9 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     c_rgb = content.rgb.float()
     c_mass, s_mass = transport_masses(content, style, cfg.masses)
     part = flow_parts(style, reg.style_up.tolist(), cfg)
+    if part is not None and cfg.smooth_passes and not cfg.smooth_with_parts:
+        log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smooth_with_parts false)")
+        cfg = replace(cfg, smooth_passes=0)
     reach = smoothing_reach(style, reg.style_up.tolist(), cfg)
     todo, pairs = [], []
     for i in range(K):
