@@ -721,3 +721,30 @@ def test_a_thinned_selection_reaches_stylize_enlarged():
                   progress=False)
     assert torch.allclose(out.scene.log_scales - raw.scene.log_scales,
                           capped.log_gain[out.labels][:, None].to(out.scene.log_scales).expand(-1, 3), atol=1e-5)
+
+
+def test_smoothing_where_the_parts_are_left_out(caplog):
+    """stylize's default smooths the flow's steps on a steep style (grass: no parts), within a quarter
+    relief length, and leaves the smoothing out where parts move a gentle one (pebbles), saying which
+    in the log: the grass comes out other than the free flow's, the pebbles exactly as without it."""
+    import logging
+
+    from wast3d.procedural import make_scene
+    from wast3d.stylize import StylizeConfig, stylize
+
+    content = make_scene("content", "ant", 600)
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    for name, smoothed in (("grass", True), ("pebbles", False)):
+        style = make_scene("style", name, 6000, seed=0)
+        reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
+                                                                               refine_iterations=5))
+        sel = select_with(SelectConfig(), reg.apply(content.means.double(), labels), labels, style.means.double(),
+                          reg.style_spacing)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="wast3d.stylize"):
+            out = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=2), progress=False)
+        free = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=2, smooth_passes=0), progress=False)
+        same = torch.equal(out.scene.means, free.scene.means)
+        assert same != smoothed, name
+        assert ("displacement smoothing within" in caplog.text) == smoothed, name
+        assert ("displacement smoothing left out" in caplog.text) != smoothed, name
