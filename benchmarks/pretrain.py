@@ -48,7 +48,7 @@ def previous_rows(a):
             prev = pd.read_csv(wt / "results" / "benchmarks" / "pretrain.csv")
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
-    prev.insert(0, "version", a.previous)
+    prev["version"] = a.previous  # its own run labelled itself "current"
     return prev
 
 
