@@ -204,8 +204,8 @@ class _NativeComposite(torch.autograd.Function):
         sfx = "_f64" if means2d.dtype == torch.float64 else "_f32"
         tensors = [x.detach().contiguous() for x in (means2d, conics, colors, opac)]
         gid, tile_off = gid.contiguous(), tile_off.contiguous()
-        # the kernel skips a Gaussian's tile rows beyond its box's y half-width
-        radii = (radii[:, 1] if radii.dim() == 2 else radii).to(means2d.dtype).contiguous()
+        # radii [V, 2] (Projected.radii): the kernel skips a Gaussian's tile rows beyond its box's y half-width
+        radii = radii[:, 1].to(means2d.dtype).contiguous()
         C = colors.shape[1]
         out = means2d.new_empty(height, width, C)
         T = means2d.new_empty(height, width)
