@@ -71,14 +71,19 @@ def main(argv=None) -> None:
         if stage not in ("", "stylize", "rescale"):
             raise SystemExit(f"--set {key}: only stylize keys or rescale.KEY can be swept here")
         t = time.perf_counter()
-        pipeline.run_stylize(content_ply, clusters, style_ply, reg, sel, d / "stylized.ply", d / "stylize.npz",
-                             d / "losses.csv", params, progress=False)
+        pipeline.run_stylize(content=content_ply, clusters=clusters, style=style_ply, registration=reg, selection=sel,
+                             out_ply=d / "stylized.ply", out_npz=d / "stylize.npz", out_csv=d / "losses.csv",
+                             params=params, progress=False)
         secs = time.perf_counter() - t
-        pipeline.run_rescale(d / "stylized.ply", d / "stylize.npz", d / "final.ply", rescale)
-        pipeline.run_render(d / "final.ply", content_ply, d / "render", render_cfg, progress=False)
-        pipeline.run_evaluate(d / "final.ply", content_ply, style_ply, d / "render", R / "render" / "scenes" / style,
-                              R / "render" / "texture_reference" / a.pair, R / "render" / "pairs" / a.pair / "input",
-                              d / "eval.json", eval_cfg, stylize_npz=d / "stylize.npz")
+        pipeline.run_rescale(stylized=d / "stylized.ply", stylize_npz=d / "stylize.npz", out_ply=d / "final.ply",
+                             params=rescale)
+        pipeline.run_render(scene=d / "final.ply", reference=content_ply, out_folder=d / "render", params=render_cfg,
+                            progress=False)
+        pipeline.run_evaluate(result=d / "final.ply", content=content_ply, style=style_ply, result_render=d / "render",
+                              style_render=R / "render" / "scenes" / style,
+                              texture_reference=R / "render" / "texture_reference" / a.pair,
+                              content_render=R / "render" / "pairs" / a.pair / "input", out_json=d / "eval.json",
+                              params=eval_cfg, stylize_npz=d / "stylize.npz")
         m = json.loads((d / "eval.json").read_text())
         rows.append({"setting": name, "sinkhorn_seconds": secs,
                      **{k: v for k, v in m.items() if isinstance(v, (int, float)) or v is None}})

@@ -104,7 +104,8 @@ def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds
     with tempfile.TemporaryDirectory(prefix="wast3d_confetti_") as tmp:
         ply = Path(tmp) / "confetti.ply"
         write_ply(ply, confetti)
-        run_render(ply, Path(ours["content"]), Path(tmp) / "render", params, progress=False)
+        run_render(scene=ply, reference=Path(ours["content"]), out_folder=Path(tmp) / "render", params=params,
+                   progress=False)
         frames = read_frames(Path(tmp) / "render")
     tex = texture_levels(frames, reference, tcfg)["texture_swd"]
     mcfg = MetricsConfig(**ours["config"]["metrics"])

@@ -384,13 +384,20 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
     write_ply(tmp_path / "c.ply", content)
     write_ply(tmp_path / "s.ply", style)
     rp = {"frames": 3, "size": 48, "key_views": 1}
-    run_render(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "rc", rp, progress=False)
-    run_render(tmp_path / "s.ply", tmp_path / "s.ply", tmp_path / "rs", rp, progress=False)
-    run_texture_reference(tmp_path / "s.ply", tmp_path / "c.ply", tmp_path / "rx", rp, progress=False)
+    run_render(scene=tmp_path / "c.ply", reference=tmp_path / "c.ply", out_folder=tmp_path / "rc", params=rp, progress=False)
+    run_render(scene=tmp_path / "s.ply", reference=tmp_path / "s.ply", out_folder=tmp_path / "rs", params=rp, progress=False)
+    run_texture_reference(style=tmp_path / "s.ply", content=tmp_path / "c.ply", out_folder=tmp_path / "rx", params=rp,
+                          progress=False)
+
+    def evaluate(result, result_render, out, params):
+        run_evaluate(result=tmp_path / result, content=tmp_path / "c.ply", style=tmp_path / "s.ply",
+                     result_render=tmp_path / result_render, style_render=tmp_path / "rs",
+                     texture_reference=tmp_path / "rx", content_render=tmp_path / "rc", out_json=tmp_path / out,
+                     params=params)
+
     small = {"patches": 8, "candidates": 16, "patch_size": 8, "rotations": 2, "colour_points": 128}
     base = {"metrics": small, "crops": {"count": 4, "size": 16}, "texture": {"windows": 64, "levels": 1, "min_windows": 8}}
-    run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "rx", tmp_path / "rc", tmp_path / "none.json", base)
+    evaluate("c.ply", "rc", "none.json", base)
     ev = json.loads((tmp_path / "none.json").read_text())
     assert ev["clip_similarity"] is None and ev["clip_status"].startswith("not computed: no clip.checkpoint")
     # the texture reference had no registration, so no element length: the coarse Chamfer says why not
@@ -398,28 +405,25 @@ def test_evaluate_stage_with_and_without_clip(tmp_path, tiny_clip):
     assert ev["content_chamfer"] == 0 and ev["style_patch_chamfer"] > 0
     assert ev["coverage"] == 1.0 and ev["texture_swd"] > 0 and ev["relief_w1"] > 0
     clip = {"model": "wast3d-tiny-clip", "checkpoint": str(tiny_clip[1]), "model_config": str(tiny_clip[0])}
-    run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "rx", tmp_path / "rc", tmp_path / "clip.json", {**base, "clip": clip})
+    evaluate("c.ply", "rc", "clip.json", {**base, "clip": clip})
     ev = json.loads((tmp_path / "clip.json").read_text())
     assert ev["clip_status"] == "computed" and -100 <= ev["clip_similarity"] <= 100
-    run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc", tmp_path / "rs",
-                 tmp_path / "rx", tmp_path / "rc", tmp_path / "coarse.json", {**base, "metrics": {**small, "coarse_scale": 0.1}})
+    evaluate("c.ply", "rc", "coarse.json", {**base, "metrics": {**small, "coarse_scale": 0.1}})
     ev = json.loads((tmp_path / "coarse.json").read_text())
     assert ev["coarse_chamfer"] < 0.2 and "metrics.coarse_scale" in ev["coarse_status"] and ev["coarse_length"] > 0
     # a collapsed result (what entropic OT without debiasing does at a large blur): no crop has enough
     # foreground; evaluate still writes its metrics, coverage says how little is left, crops say why not
     c0 = content.means.mean(0)
     write_ply(tmp_path / "tiny.ply", content.transform(translation=c0 - 0.02 * c0, scale=0.02))
-    run_render(tmp_path / "tiny.ply", tmp_path / "c.ply", tmp_path / "rt", rp, progress=False)
-    run_evaluate(tmp_path / "tiny.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rt", tmp_path / "rs",
-                 tmp_path / "rx", tmp_path / "rc", tmp_path / "tiny.json", base)
+    run_render(scene=tmp_path / "tiny.ply", reference=tmp_path / "c.ply", out_folder=tmp_path / "rt", params=rp,
+               progress=False)
+    evaluate("tiny.ply", "rt", "tiny.json", base)
     ev = json.loads((tmp_path / "tiny.json").read_text())
     assert ev["coverage"] < 0.1 and ev["texture_swd"] is None and ev["crops"]["result"] == 0
     assert "5x5 windows inside the foreground" in ev["texture_status"] and "result 0" in ev["texture_status"] and "no crop with mean alpha" in ev["clip_status"]
     assert ev["content_chamfer"] > 1
     with pytest.raises(ValueError, match="evaluate.metrics: unknown parameter.*patchez"):
-        run_evaluate(tmp_path / "c.ply", tmp_path / "c.ply", tmp_path / "s.ply", tmp_path / "rc",
-                     tmp_path / "rs", tmp_path / "rx", tmp_path / "rc", tmp_path / "x.json", {"metrics": {"patchez": 3}})
+        evaluate("c.ply", "rc", "x.json", {"metrics": {"patchez": 3}})
     assert not (tmp_path / "x.json").exists()
 
 
@@ -477,8 +481,10 @@ def test_evaluate_names_the_file_of_an_empty_result(tmp_path):
 
     write_ply(tmp_path / "empty.ply", GaussianScene.empty())
     write_ply(tmp_path / "s.ply", random_scene(50))
-    rc = main(["evaluate", str(tmp_path / "empty.ply"), str(tmp_path / "s.ply"), str(tmp_path / "s.ply"),
-               str(tmp_path), str(tmp_path), str(tmp_path), str(tmp_path), str(tmp_path / "out.json")])
+    rc = main(["evaluate", "--result", str(tmp_path / "empty.ply"), "--content", str(tmp_path / "s.ply"),
+               "--style", str(tmp_path / "s.ply"), "--result-render", str(tmp_path), "--style-render", str(tmp_path),
+               "--texture-reference", str(tmp_path), "--content-render", str(tmp_path),
+               "--out-json", str(tmp_path / "out.json")])
     assert rc == 2 and not (tmp_path / "out.json").exists()
 
 

@@ -695,7 +695,8 @@ def test_register_stage_names_the_clusters_file_when_its_normals_do_not_fit(tmp_
     write_ply(tmp_path / "s.ply", random_scene(200, seed=1))
     save_npz(tmp_path / "clusters.npz", labels=np.zeros(60, np.int64), normals=np.zeros((59, 3), np.float32))
     with pytest.raises(ValueError, match=r"clusters\.npz: 'normals' has shape \(59, 3\)"):
-        run_register(tmp_path / "c.ply", tmp_path / "clusters.npz", tmp_path / "s.ply", tmp_path / "r.npz", None, {})
+        run_register(content=tmp_path / "c.ply", clusters=tmp_path / "clusters.npz", style=tmp_path / "s.ply",
+                     out_npz=tmp_path / "r.npz", params={})
 
 
 def test_a_thinned_selection_reaches_stylize_enlarged():

@@ -149,7 +149,8 @@ def test_target_pixels_sets_eq2_target_from_the_views_and_pulls_the_scales_there
 
 def test_cli_bad_dataset(tmp_path):
     (tmp_path / "transforms_train.json").write_text('{"camera_angle_x": 0.7}')
-    r = subprocess.run([sys.executable, "-m", "wast3d", "pretrain", str(tmp_path), str(tmp_path / "o.ply"),
-                        str(tmp_path / "o.csv"), str(tmp_path / "o.json")], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "wast3d", "pretrain", "--data", str(tmp_path), "--out-ply", str(tmp_path / "o.ply"),
+                        "--out-csv", str(tmp_path / "o.csv"), "--out-json", str(tmp_path / "o.json")],
+                       capture_output=True, text=True)
     assert r.returncode == 2 and "missing field 'frames'" in r.stderr
     assert not (tmp_path / "o.ply").exists()

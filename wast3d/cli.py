@@ -13,6 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
+from .stages import STAGES
+
 log = logging.getLogger("wast3d")
 
 COMMANDS: dict[str, tuple] = {}
@@ -243,98 +245,37 @@ def _load_params(text: str) -> dict:
     return p
 
 
-@command("pretrain", "stage 1: regularized 3DGS pretraining from a Blender-format folder")
-def cmd_pretrain(sub):
-    sub.add_argument("data", type=Path, help="folder with transforms_train.json")
-    sub.add_argument("out_ply", type=Path)
-    sub.add_argument("out_csv", type=Path, help="training log")
-    sub.add_argument("out_json", type=Path, help="held-out evaluation")
-    sub.add_argument("--checkpoint", type=Path, help="checkpoint file: resumed from when it exists")
-    sub.add_argument("--init", type=Path, help="initial point cloud or 3DGS PLY")
-    sub.add_argument("--no-progress", action="store_true")
-    _params(sub)
+def stage_command(st) -> None:
+    """The ``wast3d <command>`` of a :class:`~wast3d.stages.Stage`: one named option per file (``--content
+    PATH``, ``--out-npz PATH``), ``--params``, and ``--no-progress`` where the stage has a progress bar;
+    it calls ``pipeline.<run>`` with the files as keywords."""
 
-    def run(a):
-        from .pipeline import run_pretrain
-
-        run_pretrain(a.data, a.out_ply, a.out_csv, a.out_json, _load_params(a.params), a.checkpoint, a.init,
-                     progress=not a.no_progress)
-
-    return run
-
-
-def stage_command(name: str, help_: str, positionals: tuple[str, ...], fn: str, picture=False, progress=False,
-                  options: tuple[str, ...] = ()):
-    """A ``wast3d <stage>`` command calling ``pipeline.<fn>(*positionals, [picture,] params[, progress],
-    **options)``; ``options`` are optional paths (``--stylize-npz PATH`` for ``stylize_npz``)."""
-
-    @command(name, help_)
+    @command(st.command, st.help)
     def cmd(sub):
-        for n in positionals:
-            sub.add_argument(n, type=Path)
-        for n in options:
-            sub.add_argument("--" + n.replace("_", "-"), dest=n, type=Path)
-        if picture:
-            sub.add_argument("--picture", type=Path)
-        if progress:
+        for p in st.ports:
+            if p.beside is not None:
+                continue
+            sub.add_argument(p.option, dest=p.keyword, type=Path, required=p.required, metavar="PATH",
+                             help=p.help + ("" if p.required else " (optional)"))
+        if st.progress:
             sub.add_argument("--no-progress", action="store_true")
         _params(sub)
+        beside = [f"{p.name} beside {p.beside} ({p.help})" for p in st.ports if p.beside is not None]
+        sub.epilog = ("Also writes, with the same stem: " + "; ".join(beside)) if beside else None
 
         def run(a):
             from . import pipeline
 
-            args = [getattr(a, n) for n in positionals] + ([a.picture] if picture else [])
-            kw = {"progress": not a.no_progress} if progress else {}
-            kw.update({n: getattr(a, n) for n in options})
-            getattr(pipeline, fn)(*args, _load_params(a.params), **kw)
+            kw = {p.keyword: getattr(a, p.keyword) for p in st.ports if p.beside is None}
+            if st.progress:
+                kw["progress"] = not a.no_progress
+            getattr(pipeline, st.run)(**kw, params=_load_params(a.params))
 
         return run
 
-    return cmd
 
-
-stage_command("surface", "stage 2: sample the content's surface (or pass it through when disabled)",
-              ("scene", "out_ply", "out_json"), "run_surface")
-@command("style-clean", "stage 2 for a style: drop floaters outside the patch, haze and hidden Gaussians")
-def cmd_style_clean(sub):
-    sub.add_argument("scene", type=Path)
-    sub.add_argument("out_ply", type=Path)
-    sub.add_argument("out_json", type=Path)
-    sub.add_argument("--labels-from", type=Path, help="labelled PLY the style was rendered from (element labels)")
-    _params(sub)
-
-    def run(a):
-        from .pipeline import run_style_clean
-
-        run_style_clean(a.scene, a.out_ply, a.out_json, _load_params(a.params), a.labels_from)
-
-    return run
-
-
-stage_command("cluster", "stage 3: k-means of the content on position and colour", ("content", "out_npz"),
-              "run_cluster", picture=True)
-stage_command("register", "stage 4a: per-cluster registration to the style scene (eq. 7)",
-              ("content", "clusters", "style", "out_npz"), "run_register", picture=True)
-stage_command("select", "stage 4b: style Gaussians of each cluster by kNN (eq. 8)",
-              ("content", "clusters", "style", "registration", "out_npz"), "run_select")
-stage_command("stylize", "stage 5: minimize the Sinkhorn divergence per cluster (eq. 9)",
-              ("content", "clusters", "style", "registration", "selection", "out_ply", "out_npz", "out_csv"),
-              "run_stylize", progress=True)
-stage_command("rescale", "stage 6: readjust scales from the change of mean nearest-neighbour distance",
-              ("stylized", "stylize_npz", "out_ply"), "run_rescale")
-
-
-stage_command("render", "stage 7: turntable (PNG frames + GIF), key views and close-up with depth and normals",
-              ("scene", "reference", "out_dir"), "run_render", progress=True)
-stage_command("texture-reference", "stage 7: the style rendered at the pixel scale its elements have on the content's "
-              "renders (the reference of texture_swd)", ("style", "content", "out_dir"), "run_texture_reference",
-              progress=True, options=("registration",))
-stage_command("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
-              ("content", "style", "out_ply"), "run_colour_transfer")
-stage_command("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result",
-              ("result", "content", "style", "result_render", "style_render", "texture_reference", "content_render",
-               "out_json"),
-              "run_evaluate", options=("stylize_npz",))
+for _stage in STAGES.values():
+    stage_command(_stage)
 
 
 def columns_command(name: str, help_: str, out: str, fn: str):

@@ -1,7 +1,8 @@
 """The I/O edge of every stage: read artifacts, call the pure stage functions, write artifacts.
 
-Each ``run_*`` function is what one ``wast3d <stage>`` command (and one Snakemake rule) does. Stage
-parameters arrive as a dict (the rule's JSON ``--params``) and are checked by the stage's config
+Each ``run_*`` function is what one ``wast3d <stage>`` command (and one Snakemake rule) does; its
+keywords are the stage's files as :mod:`wast3d.stages` declares them (``out_<name>`` for an output).
+Stage parameters arrive as a dict (the rule's JSON ``--params``) and are checked by the stage's config
 dataclass: an unknown key is an error naming the stage and the key.
 """
 
@@ -32,24 +33,23 @@ def make_config(cls, params: dict | None, stage: str):
     return cls(**params)
 
 
-def run_surface(scene_ply: Path, out_ply: Path, out_json: Path, params: dict) -> None:
+def run_surface(*, scene: Path, out_ply: Path, out_json: Path, params: dict) -> None:
     from .surface import SurfaceConfig, surface_points
 
     cfg = make_config(SurfaceConfig, params, "surface")
-    scene = read_ply(scene_ply)
-    out, report = surface_points(scene, cfg)
-    report["source"] = str(scene_ply)
+    out, report = surface_points(read_ply(scene), cfg)
+    report["source"] = str(scene)
     write_ply(out_ply, out)
     write_json(out_json, report)
 
 
-def run_style_clean(scene_ply: Path, out_ply: Path, out_json: Path, params: dict, labels_from: Path | None = None) -> None:
+def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict, labels_from: Path | None = None) -> None:
     """Clean a style scene with the style's rules (:func:`wast3d.surface.clean_style`); ``labels_from``: the
     labelled scene a trained style was rendered from (each Gaussian takes its nearest source's element)."""
     from .surface import StyleCleanConfig, clean_style
 
     cfg = make_config(StyleCleanConfig, params, "style_clean")
-    scene = read_ply(scene_ply)
+    source, scene = scene, read_ply(scene)
     if labels_from is not None:
         from .elements import transfer_elements
 
@@ -58,7 +58,7 @@ def run_style_clean(scene_ply: Path, out_ply: Path, out_json: Path, params: dict
             raise ValueError(f"{labels_from}: no property 'element' to take the labels from")
         scene.element = transfer_elements(scene.means, src.means, src.element)
     idx, report = clean_style(scene, cfg)
-    report["source"] = str(scene_ply)
+    report["source"] = str(source)
     report["labels_from"] = None if labels_from is None else str(labels_from)
     out = scene.subset(idx)
     if cfg.recolour > 0:
@@ -71,11 +71,11 @@ def run_style_clean(scene_ply: Path, out_ply: Path, out_json: Path, params: dict
     write_json(out_json, report)
 
 
-def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: dict) -> None:
+def run_cluster(*, content: Path, out_npz: Path, params: dict, out_picture: Path | None = None) -> None:
     from .clustering import ClusterConfig, kmeans
 
     cfg = make_config(ClusterConfig, params, "cluster")
-    content = read_ply(content_ply)
+    content = read_ply(content)
     normals = None
     if cfg.flatness > 0:  # the split of wrapped clusters needs each point's outward normal
         from .surface import outward_normals
@@ -89,10 +89,10 @@ def run_cluster(content_ply: Path, out_npz: Path, out_png: Path | None, params: 
         extra["normals"] = normals.numpy()
     save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels), **extra)
     write_json(Path(out_npz).with_suffix(".json"), info)
-    if out_png:
+    if out_picture:
         from .figures import clusters_picture
 
-        clusters_picture(content.means.numpy(), labels, out_png, f"{info['clusters']} clusters")
+        clusters_picture(content.means.numpy(), labels, out_picture, f"{info['clusters']} clusters")
 
 
 def _clusters(path: Path, n: int) -> dict[str, np.ndarray]:
@@ -109,13 +109,13 @@ def _labels(path: Path, n: int) -> torch.Tensor:
     return torch.from_numpy(_clusters(path, n)["labels"]).long()
 
 
-def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz: Path, out_png: Path | None,
-                 params: dict) -> None:
+def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, params: dict,
+                 out_picture: Path | None = None) -> None:
     from .registration import RegistrationConfig, register
 
     cfg = make_config(RegistrationConfig, params, "register")
-    content, style = read_ply(content_ply), read_ply(style_ply)
-    cl = _clusters(clusters_npz, len(content))
+    content, style = read_ply(content), read_ply(style)
+    cl = _clusters(clusters, len(content))
     labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
     reg = register(content.means, labels, style.means, cfg,
                    normals=None if normals is None else torch.from_numpy(normals))
@@ -125,7 +125,7 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
         "residual_init_mean": float(reg.residual_init.mean()), "residual_mean": float(reg.residual.mean()),
         "residual_quantiles": {q: float(torch.quantile(reg.residual, q)) for q in (0.05, 0.5, 0.95)},
         "units": "mean nearest-style-neighbour distance / mean style spacing"})
-    if out_png:
+    if out_picture:
         from .figures import registration_picture
 
         mapped = reg.apply(content.means.double(), labels)
@@ -135,7 +135,7 @@ def run_register(content_ply: Path, clusters_npz: Path, style_ply: Path, out_npz
             c, r = m.mean(0), float((m - m.mean(0)).norm(dim=1).max()) * 1.5 + 1e-9
             near = ((style.means.double() - c).norm(dim=1) < r)
             panels.append((m.numpy(), style.means[near].numpy(), style.rgb[near].numpy()))
-        registration_picture(panels, out_png)
+        registration_picture(panels, out_picture)
 
 
 def load_registration(path: Path):
@@ -149,14 +149,14 @@ def load_registration(path: Path):
         raise ValueError(f"{path}: {e}") from None
 
 
-def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, out_npz: Path, params: dict) -> None:
+def run_select(*, content: Path, clusters: Path, style: Path, registration: Path, out_npz: Path, params: dict) -> None:
     from .selection import SelectConfig, select_with
 
     cfg = make_config(SelectConfig, params, "select")
     k = cfg.k
-    content, style = read_ply(content_ply), read_ply(style_ply)
-    labels = _labels(clusters_npz, len(content))
-    reg = load_registration(reg_npz)
+    content, style = read_ply(content), read_ply(style)
+    labels = _labels(clusters, len(content))
+    reg = load_registration(registration)
     sel = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
                       reg.style_spacing)
     sizes = sel.sizes.numpy()
@@ -179,15 +179,16 @@ def run_select(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: 
                                                     "size_max": int(sizes.max())})
 
 
-def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz: Path, sel_npz: Path,
+def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Path, selection: Path,
                 out_ply: Path, out_npz: Path, out_csv: Path, params: dict, progress: bool = True) -> None:
     from .selection import Selection
     from .stylize import StylizeConfig, stylize
 
     cfg = make_config(StylizeConfig, params, "stylize")
-    content, style = read_ply(content_ply), read_ply(style_ply)
-    labels = _labels(clusters_npz, len(content))
-    reg = load_registration(reg_npz)
+    content, style = read_ply(content), read_ply(style)
+    labels = _labels(clusters, len(content))
+    reg = load_registration(registration)
+    sel_npz = selection
     sel = load_npz(sel_npz, required=("offsets", "indices"))
     if int(sel["indices"].max(initial=0)) >= len(style):
         raise ValueError(f"{sel_npz}: 'indices' point past the style scene's {len(style)} Gaussians")
@@ -215,11 +216,11 @@ def run_stylize(content_ply: Path, clusters_npz: Path, style_ply: Path, reg_npz:
         "device": str(resolve_device(cfg.device)), "config": dataclasses.asdict(cfg)})
 
 
-def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: dict) -> None:
+def run_rescale(*, stylized: Path, stylize_npz: Path, out_ply: Path, params: dict) -> None:
     from .rescale import RescaleConfig, readjust_scales
 
     cfg = make_config(RescaleConfig, params, "rescale")
-    scene = read_ply(stylized_ply)
+    scene = read_ply(stylized)
     d = load_npz(stylize_npz, required=("labels", "before_means"))
     if not cfg.enabled:
         log.info("scale readjustment disabled: the stylized scene is passed through")
@@ -234,26 +235,25 @@ def run_rescale(stylized_ply: Path, stylize_npz: Path, out_ply: Path, params: di
         "at_bound": float(((ratio <= 1 / cfg.bound + 1e-9) | (ratio >= cfg.bound - 1e-9)).double().mean())})
 
 
-def run_pretrain(data_dir: Path, out_ply: Path, out_csv: Path, out_json: Path, params: dict,
-                 checkpoint: Path | None = None, init_ply: Path | None = None, progress: bool = True) -> None:
+def run_pretrain(*, data: Path, out_ply: Path, out_csv: Path, out_json: Path, params: dict,
+                 checkpoint: Path | None = None, init: Path | None = None, progress: bool = True) -> None:
     """Train a 3DGS scene from a Blender-format folder; ``holdout_every``/``background``/``max_views``
     select the data, the rest are :class:`wast3d.pretrain.PretrainConfig` fields."""
     from .datasets import load_blender
     from .pretrain import PretrainConfig, Trainer
 
     params = dict(params)
-    data = {k: params.pop(k) for k in ("holdout_every", "background", "max_views") if k in params}
+    sel = {k: params.pop(k) for k in ("holdout_every", "background", "max_views") if k in params}
     cfg = make_config(PretrainConfig, params, "pretrain")
-    ds = load_blender(data_dir, holdout_every=data.get("holdout_every", 8),
-                      background=tuple(data.get("background", (1.0, 1.0, 1.0))), max_views=data.get("max_views"))
-    init = read_ply(init_ply) if init_ply else None
-    tr = Trainer(ds, cfg, init)
+    ds = load_blender(data, holdout_every=sel.get("holdout_every", 8),
+                      background=tuple(sel.get("background", (1.0, 1.0, 1.0))), max_views=sel.get("max_views"))
+    tr = Trainer(ds, cfg, read_ply(init) if init else None)
     tr.train(checkpoint, progress=progress)
     ev = tr.evaluate()
     write_ply(out_ply, tr.scene())
     with atomic_path(out_csv) as tmp:
         pd.DataFrame(tr.log_rows).to_csv(tmp, index=False)
-    write_json(out_json, {**ev, "config": dataclasses.asdict(cfg), "data": str(data_dir),
+    write_json(out_json, {**ev, "config": dataclasses.asdict(cfg), "data": str(data),
                           "train_views": len(ds.train), "test_views": len(ds.test)})
     log.info("pretrain: %d Gaussians, held-out PSNR %.2f dB, SSIM %.4f, %.0f s", ev["gaussians"], ev["psnr"],
              ev["ssim"], ev["train_seconds"])
@@ -262,19 +262,19 @@ def run_pretrain(data_dir: Path, out_ply: Path, out_csv: Path, out_json: Path, p
 # ---- stages 7-9: rendering, evaluation, baselines ---------------------------------------------
 
 
-def run_render(scene_ply: Path, reference_ply: Path, out_dir: Path, params: dict, progress: bool = True) -> None:
-    """Turntable, key views and close-up of a scene, with cameras fitted to ``reference_ply``."""
+def run_render(*, scene: Path, reference: Path, out_folder: Path, params: dict, progress: bool = True) -> None:
+    """Turntable, key views and close-up of a scene, with cameras fitted to ``reference``."""
     from .render import RenderConfig, render_turntable
 
     cfg = make_config(RenderConfig, params, "render")
-    scene = read_ply(scene_ply)
-    ref = scene if Path(reference_ply) == Path(scene_ply) else read_ply(reference_ply)
-    info = render_turntable(scene, ref, out_dir, cfg, progress)
-    log.info("render: %s -> %s (%d frames, fragment at pixel %s)", scene_ply, out_dir, info["frames"],
+    s = read_ply(scene)
+    ref = s if Path(reference) == Path(scene) else read_ply(reference)
+    info = render_turntable(s, ref, out_folder, cfg, progress)
+    log.info("render: %s -> %s (%d frames, fragment at pixel %s)", scene, out_folder, info["frames"],
              info["fragment_pixel"])
 
 
-def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, params: dict, progress: bool = True,
+def run_texture_reference(*, style: Path, content: Path, out_folder: Path, params: dict, progress: bool = True,
                           registration: Path | None = None) -> None:
     """The style's frames at the pixel scale its elements have on renders fitted to the content
     (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
@@ -283,7 +283,7 @@ def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, par
     from .render import RenderConfig, render_texture_reference
 
     cfg = make_config(RenderConfig, params, "render")
-    style = read_ply(style_ply)
+    style_ply, style = style, read_ply(style)
     reg = None if registration is None else load_registration(registration)
     s0, length = None if reg is None else reg.s0, None
     if reg is not None:
@@ -292,19 +292,19 @@ def run_texture_reference(style_ply: Path, content_ply: Path, out_dir: Path, par
         except ValueError as e:
             log.warning("texture reference: %s: no element length (%s); the coarse Chamfer will not be computed",
                         style_ply, e)
-    info = render_texture_reference(style, read_ply(content_ply), out_dir, cfg, progress, s0, length)
+    info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, s0, length)
     log.info("texture reference: %s at zoom %.3f (cameras fitted to it, its elements at their size on %s) -> %s",
-             style_ply, info["zoom"], content_ply, out_dir)
+             style_ply, info["zoom"], content, out_folder)
 
 
-def run_colour_transfer(content_ply: Path, style_ply: Path, out_ply: Path, params: dict) -> None:
+def run_colour_transfer(*, content: Path, style: Path, out_ply: Path, params: dict) -> None:
     """Baseline: the content with its colours mapped to the style's by entropic OT."""
     import time
 
     from .baselines import ColourTransferConfig, colour_transfer
 
     cfg = make_config(ColourTransferConfig, params, "colour_transfer")
-    content, style = read_ply(content_ply), read_ply(style_ply)
+    content, style = read_ply(content), read_ply(style)
     t = time.perf_counter()
     out = colour_transfer(content, style, cfg)
     secs = time.perf_counter() - t
@@ -382,7 +382,7 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     return {**out, "element_status": status}
 
 
-def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_render: Path, style_render: Path,
+def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Path, style_render: Path,
                  texture_reference: Path, content_render: Path, out_json: Path, params: dict,
                  stylize_npz: Path | None = None) -> None:
     """Weights-free metrics, texture SWD, coverage and CLIP crop similarity of one result; ``params``:
@@ -406,8 +406,8 @@ def run_evaluate(result_ply: Path, content_ply: Path, style_ply: Path, result_re
     ccfg = make_config(CropConfig, params.get("crops"), "evaluate.crops")
     kcfg = make_config(ClipConfig, params.get("clip"), "evaluate.clip")
     ecfg = make_config(ElementConfig, params.get("elements"), "evaluate.elements")
-    result, style = read_ply(result_ply), read_ply(style_ply)
-    content = read_ply(content_ply)
+    result_ply, style_ply, content_ply = result, style, content
+    result, style, content = read_ply(result_ply), read_ply(style_ply), read_ply(content_ply)
     for path, scene in ((result_ply, result), (style_ply, style), (content_ply, content)):
         if len(scene) < 2:
             raise ValueError(f"{path}: {len(scene)} Gaussian(s); the metrics need at least 2")

@@ -157,6 +157,44 @@ def stage_json(params):
     return json.dumps(params, separators=(",", ":"), sort_keys=True).replace("'", "'\\''")
 
 
+def _load_stages():
+    """The stage declarations that go with these rules, read by path (whatever else is installed): the
+    checkout's wast3d/stages.py, or, in a wheel (the workflow is the data package wast3d/_workflow), the
+    package's own."""
+    import importlib.util
+
+    paths = [os.path.join(workflow.basedir, "wast3d", "stages.py"), os.path.join(workflow.basedir, "..", "stages.py")]
+    path = next((p for p in paths if os.path.isfile(p)), None)
+    if path is None:
+        raise FileNotFoundError(f"the stage declarations (wast3d/stages.py) are in none of {', '.join(paths)}")
+    spec = importlib.util.spec_from_file_location("wast3d_stages", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod.STAGES
+
+
+STAGES = _load_stages()
+
+
+def stage_args(command, ignore=(), **paths):
+    """A params function: the stage's files as its command's named options (``cluster --content PATH
+    --out-npz PATH ...``, quoted), taken from the rule's input and output files of the same names
+    (wast3d/stages.py), and from ``paths`` (name -> a function of the wildcards) for files the rule does
+    not track. A rule file the stage does not declare (other than ``ignore``) is an error."""
+    stage = STAGES[command]
+
+    def args(wildcards, input, output):
+        ins = {k: v for k, v in input.items() if k not in ignore}
+        ins.update({k: f(wildcards) for k, f in paths.items()})
+        try:
+            return stage.command_line(ins, dict(output.items()))
+        except ValueError as e:
+            raise ValueError(f"the {command} stage's rule: {e}") from None
+
+    return args
+
+
 # scenes that no pair of the run or of Table 1 uses are defined but not built (a config merged over the
 # demo's, like config/lego.yaml, keeps the demo's scenes in `scenes`)
 USED_SCENES = [s for s in SCENES if any(s in p for p in PAIRS + TABLE1_PAIRS)]

@@ -6,13 +6,14 @@ same views and the same close-up fragment."""
 
 rule render_method:
     input:
-        ply=method_ply,
+        scene=method_ply,
         reference=lambda w: content_points(w.content),
     output:
-        directory(f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}"),
+        folder=directory(f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}"),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
+        args=stage_args("render"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -20,17 +21,19 @@ rule render_method:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} --threads {threads} render {input.ply} {input.reference} {output} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule render_scene:
     input:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        reference=f"{RESULTS}/scenes/{{scene}}/scene.ply",  # its own cameras
     output:
-        directory(f"{RESULTS}/render/scenes/{{scene}}"),
+        folder=directory(f"{RESULTS}/render/scenes/{{scene}}"),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
+        args=stage_args("render"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -38,19 +41,20 @@ rule render_scene:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_scene_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} render {input.ply} {input.ply} {output} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule texture_reference:
     input:
         style=lambda w: style_points(w.style),
         content=lambda w: content_points(w.content),
-        reg=f"{RESULTS}/register/{{content}}__{{style}}/{REFERENCE_PARTITION}/registration.npz",
+        registration=f"{RESULTS}/register/{{content}}__{{style}}/{REFERENCE_PARTITION}/registration.npz",
     output:
-        directory(f"{RESULTS}/render/texture_reference/{{content}}__{{style}}"),
+        folder=directory(f"{RESULTS}/render/texture_reference/{{content}}__{{style}}"),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
+        args=stage_args("texture-reference"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -58,7 +62,7 @@ rule texture_reference:
     benchmark:
         f"{RESULTS}/benchmarks/rules/texture_reference_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} texture-reference {input.style} {input.content} {output} --registration {input.reg} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
 
 
 rule colour_transfer:
@@ -71,6 +75,7 @@ rule colour_transfer:
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("colour_transfer", {})),
+        args=stage_args("colour-transfer"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -78,7 +83,7 @@ rule colour_transfer:
     benchmark:
         f"{RESULTS}/benchmarks/rules/colour_transfer_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} colour-transfer {input.content} {input.style} {output.ply} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule evaluate:
@@ -93,11 +98,11 @@ rule evaluate:
         stylize_npz=lambda w: [f"{RESULTS}/stylize/{w.content}__{w.style}/{w.method}/stylize.npz"] if w.method in EXPERIMENTS else [],
         clip=clip_inputs(),
     output:
-        f"{RESULTS}/eval/{{content}}__{{style}}/{{method}}.json",
+        json=f"{RESULTS}/eval/{{content}}__{{style}}/{{method}}.json",
     params:
         exe=WAST3D,
         cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "texture", "crops", "clip", "elements") if k in EVALUATION}),
-        stylize_npz=lambda w, input: f"--stylize-npz {input.stylize_npz[0]}" if input.stylize_npz else "",
+        args=stage_args("evaluate", ignore=("clip",)),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -105,8 +110,7 @@ rule evaluate:
     benchmark:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} --threads {threads} evaluate {input.result} {input.content} {input.style} {input.result_render} "
-        "{input.style_render} {input.texture_reference} {input.content_render} {output} {params.stylize_npz} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule comparison_sheet:

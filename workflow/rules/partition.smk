@@ -3,7 +3,7 @@
 
 rule surface:
     input:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
     output:
         ply=f"{RESULTS}/scenes/{{scene}}/surface.ply",
         json=f"{RESULTS}/scenes/{{scene}}/surface.json",
@@ -12,6 +12,7 @@ rule surface:
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(SCENES[w.scene].get("surface", {})),
+        args=stage_args("surface"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -19,13 +20,13 @@ rule surface:
     benchmark:
         f"{RESULTS}/benchmarks/rules/surface_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} surface {input.ply} {output.ply} {output.json} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule style_clean:
     input:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
-        labels=lambda w: [f"{RESULTS}/scenes/{SCENES[w.scene]['labels_from']}/scene.ply"] if SCENES[w.scene].get("labels_from") else [],
+        scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        labels_from=lambda w: [f"{RESULTS}/scenes/{SCENES[w.scene]['labels_from']}/scene.ply"] if SCENES[w.scene].get("labels_from") else [],
     output:
         ply=f"{RESULTS}/scenes/{{scene}}/style.ply",
         json=f"{RESULTS}/scenes/{{scene}}/style.json",
@@ -34,7 +35,7 @@ rule style_clean:
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(SCENES[w.scene].get("style_clean", {})),
-        labels=lambda w, input: f"--labels-from {shlex.quote(input.labels[0])}" if input.labels else "",
+        args=stage_args("style-clean"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -42,7 +43,7 @@ rule style_clean:
     benchmark:
         f"{RESULTS}/benchmarks/rules/style_clean_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} style-clean {input.ply} {output.ply} {output.json} {params.labels} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule cluster:
@@ -51,11 +52,12 @@ rule cluster:
     output:
         npz=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
         json=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.json",
-        png=report(f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.png",
+        picture=report(f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.png",
                    caption="../report/clusters.rst", category="Partition"),
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(PARTITIONS[w.partition].get("cluster", {})),
+        args=stage_args("cluster"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -63,7 +65,7 @@ rule cluster:
     benchmark:
         f"{RESULTS}/benchmarks/rules/cluster_{{content}}_{{partition}}.tsv"
     shell:
-        "{params.exe} --threads {threads} cluster {input.content} {output.npz} --picture {output.png} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule register:
@@ -74,11 +76,12 @@ rule register:
     output:
         npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
         json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.json",
-        png=report(f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.png",
+        picture=report(f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.png",
                    caption="../report/registration.rst", category="Partition"),
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(PARTITIONS[w.partition].get("register", {})),
+        args=stage_args("register"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -86,8 +89,7 @@ rule register:
     benchmark:
         f"{RESULTS}/benchmarks/rules/register_{{content}}__{{style}}_{{partition}}.tsv"
     shell:
-        "{params.exe} --threads {threads} register {input.content} {input.clusters} {input.style} {output.npz} "
-        "--picture {output.png} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule select:
@@ -95,13 +97,14 @@ rule select:
         content=lambda w: content_points(w.content),
         clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
         style=lambda w: style_points(w.style),
-        reg=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
+        registration=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
     output:
         npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.npz",
         json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.json",
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(PARTITIONS[w.partition].get("select", {})),
+        args=stage_args("select"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -109,5 +112,4 @@ rule select:
     benchmark:
         f"{RESULTS}/benchmarks/rules/select_{{content}}__{{style}}_{{partition}}.tsv"
     shell:
-        "{params.exe} --threads {threads} select {input.content} {input.clusters} {input.style} {input.reg} {output.npz} "
-        "--params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"

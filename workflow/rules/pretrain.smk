@@ -12,9 +12,9 @@ rule pretrain:
         scene=constraint(scenes_of("images")),
     params:
         exe=WAST3D,
-        data=lambda w: SCENES[w.scene]["path"],
-        ckpt=lambda w: f"{RESULTS}/scenes/{w.scene}/pretrain.ckpt",
         cfg=lambda w: stage_json(pretrain_params(w.scene)),
+        args=stage_args("pretrain", ignore=("transforms",), data=lambda w: SCENES[w.scene]["path"],
+                        checkpoint=lambda w: f"{RESULTS}/scenes/{w.scene}/pretrain.ckpt"),
     threads: HEAVY_THREADS
     resources:
         mem_mb=16000,
@@ -26,5 +26,4 @@ rule pretrain:
     benchmark:
         f"{RESULTS}/benchmarks/rules/pretrain_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} pretrain {params.data} {output.ply} {output.csv} {output.json} "
-        "--checkpoint {params.ckpt} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"

@@ -6,8 +6,8 @@ rule sinkhorn:
         content=lambda w: content_points(w.content),
         clusters=lambda w: f"{RESULTS}/partition/{w.content}/{partition_of(w)}/clusters.npz",
         style=lambda w: style_points(w.style),
-        reg=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/registration.npz",
-        sel=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/selection.npz",
+        registration=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/registration.npz",
+        selection=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/selection.npz",
     output:
         ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylized.ply",
         npz=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylize.npz",
@@ -18,6 +18,7 @@ rule sinkhorn:
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("stylize", {})),
+        args=stage_args("stylize"),
     threads: HEAVY_THREADS
     resources:
         mem_mb=8000,
@@ -29,20 +30,20 @@ rule sinkhorn:
     benchmark:
         f"{RESULTS}/benchmarks/rules/sinkhorn_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} --threads {threads} stylize {input.content} {input.clusters} {input.style} {input.reg} {input.sel} "
-        "{output.ply} {output.npz} {output.csv} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule rescale:
     input:
-        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylized.ply",
-        npz=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylize.npz",
+        stylized=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylized.ply",
+        stylize_npz=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylize.npz",
     output:
         ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/final.ply",
         json=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/final.json",
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("rescale", {})),
+        args=stage_args("rescale"),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -50,4 +51,4 @@ rule rescale:
     benchmark:
         f"{RESULTS}/benchmarks/rules/rescale_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} --threads {threads} rescale {input.ply} {input.npz} {output.ply} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"

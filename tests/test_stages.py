@@ -1,0 +1,86 @@
+"""The stage declarations (wast3d/stages.py) against what is derived from them: the pipeline functions'
+keywords, the command's options, the rules' command lines and docs/stages.md."""
+
+import inspect
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from wast3d import pipeline
+from wast3d.cli import build_parser
+from wast3d.stages import STAGES, In, Out, Stage
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("command", list(STAGES))
+def test_each_stage_function_takes_exactly_its_declared_files(command):
+    st = STAGES[command]
+    sig = inspect.signature(getattr(pipeline, st.run))
+    assert all(p.kind is inspect.Parameter.KEYWORD_ONLY for p in sig.parameters.values()), \
+        f"pipeline.{st.run}: files by keyword only, so that two of one format cannot be swapped"
+    declared = {p.keyword for p in st.ports if p.beside is None} | {"params"} | ({"progress"} if st.progress else set())
+    assert set(sig.parameters) == declared
+    for p in st.ports:  # an optional file has a default (None), a required one none
+        if p.beside is None:
+            assert (sig.parameters[p.keyword].default is inspect.Parameter.empty) == p.required, p.name
+    if st.config:
+        import importlib
+
+        module, cls = st.config.split(":")
+        assert hasattr(importlib.import_module(module), cls)
+
+
+def test_command_options_come_from_the_declaration():
+    parser = build_parser()
+    a = parser.parse_args(["stylize", "--content", "c.ply", "--clusters", "k.npz", "--style", "s.ply",
+                           "--registration", "r.npz", "--selection", "x.npz", "--out-ply", "o.ply",
+                           "--out-npz", "o.npz", "--out-csv", "o.csv", "--no-progress"])
+    assert a.registration == Path("r.npz") and a.out_csv == Path("o.csv") and a.no_progress
+    with pytest.raises(SystemExit):  # a required file left out
+        parser.parse_args(["select", "--content", "c.ply", "--clusters", "k.npz", "--style", "s.ply",
+                           "--out-npz", "o.npz"])
+    with pytest.raises(SystemExit):  # a file beside another has no option of its own
+        parser.parse_args(["cluster", "--content", "c.ply", "--out-npz", "k.npz", "--out-json", "k.json"])
+    help_ = subprocess.run([sys.executable, "-m", "wast3d", "cluster", "--help"], capture_output=True, text=True).stdout
+    assert "--out-picture PATH" in help_ and "json beside npz" in help_
+
+
+def test_argv_names_an_unknown_a_missing_and_a_misplaced_file():
+    st = STAGES["rescale"]
+    ins = {"stylized": "a/stylized.ply", "stylize_npz": "a/stylize.npz"}
+    assert st.argv(ins, {"ply": "a/final.ply", "json": "a/final.json"}) == [
+        "rescale", "--stylized", "a/stylized.ply", "--stylize-npz", "a/stylize.npz", "--out-ply", "a/final.ply"]
+    with pytest.raises(ValueError, match="rescale: no input named 'ply'"):
+        st.argv({**ins, "ply": "x.ply"}, {"ply": "a/final.ply"})
+    with pytest.raises(ValueError, match="required file.*stylize_npz"):
+        st.argv({"stylized": "a.ply"}, {"ply": "b.ply"})
+    with pytest.raises(ValueError, match="'json' .* is written beside 'ply'"):
+        st.argv(ins, {"ply": "a/final.ply", "json": "a/other.json"})
+    ev = STAGES["evaluate"]  # an optional file given as an empty list (a rule's input function) is left out
+    files = {n: f"{n}.x" for n in ("result", "content", "style", "result_render", "style_render", "texture_reference",
+                                   "content_render")}
+    assert "--stylize-npz" not in ev.argv({**files, "stylize_npz": []}, {"json": "e.json"})
+    assert ev.argv({**files, "stylize_npz": ["s.npz"]}, {"json": "e.json"})[-4:] == [
+        "--stylize-npz", "s.npz", "--out-json", "e.json"]
+    line = STAGES["colour-transfer"].command_line({"content": "Bob's c.ply", "style": "s.ply"}, {"ply": "o.ply"})
+    assert "'Bob'\"'\"'s c.ply'" in line  # quoted for the shell
+    with pytest.raises(ValueError, match="used twice"):
+        Stage("x", "x", "run_x", (In("a", ""), Out("a", "")))
+    with pytest.raises(ValueError, match="beside 'npz', which is not an output"):
+        Stage("x", "x", "run_x", (In("a", ""), Out("json", "", beside="npz")))
+
+
+def test_stage_reference_page_is_generated_from_the_declarations():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("config_docs", ROOT / "workflow" / "scripts" / "config_docs.py")
+    cd = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cd)
+    page = cd.stages_page()
+    assert cd.STAGES_OUT.read_text() == page, "docs/stages.md is stale: python workflow/scripts/config_docs.py"
+    for st in STAGES.values():
+        assert f"## `wast3d {st.command}`" in page
+        assert all(f"`{p.option}`" in page for p in st.ports if p.beside is None)

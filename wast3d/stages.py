@@ -1,0 +1,226 @@
+"""Every stage of the workflow, declared once: its command, its files by name, its config dataclass
+and the :mod:`wast3d.pipeline` function that runs it.
+
+From these declarations come the ``wast3d <command>`` subcommands (one named option per file:
+``--content PATH`` for an input, ``--out-npz PATH`` for an output), the Snakemake rules' command lines
+(``stage_args`` in ``workflow/rules/common.smk``: a rule's input and output files of the same names)
+and the stage list in ``docs/workflow.md``. A file the rule names but the stage does not declare, or
+a required one it lacks, is an error when the workflow is built, not a silently swapped argument.
+
+Conventions: a port's name is the rule's input or output key and the pipeline function's keyword
+(``out_<name>`` for an output); the function takes ``params`` (the stage's config block as a dict,
+checked by the dataclass) and, when the stage has a progress bar, ``progress``. Files a stage writes
+beside a declared output (``clusters.json`` beside ``clusters.npz``, same stem) are declared with
+``beside``: they have no option, and a rule that names them must name them there.
+Plain declarations only: this module imports nothing heavy.
+"""
+
+from __future__ import annotations
+
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+
+@dataclass(frozen=True)
+class Port:
+    """One file (or folder) a stage reads or writes."""
+
+    name: str
+    help: str
+    output: bool = False
+    required: bool = True
+    beside: str | None = None  # written next to this output, same stem (no option of its own)
+
+    @property
+    def keyword(self) -> str:
+        """The pipeline function's keyword for this file."""
+        return f"out_{self.name}" if self.output else self.name
+
+    @property
+    def option(self) -> str:
+        """The command-line option for this file."""
+        return "--" + self.keyword.replace("_", "-")
+
+
+def In(name: str, help: str, required: bool = True) -> Port:  # noqa: N802 - reads as a declaration
+    return Port(name, help, False, required)
+
+
+def Out(name: str, help: str, required: bool = True, beside: str | None = None) -> Port:  # noqa: N802
+    return Port(name, help, True, required and beside is None, beside)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A stage: ``command`` (``wast3d <command>``), ``run`` (the function in :mod:`wast3d.pipeline`),
+    ``ports`` (its files), ``config`` (``module:Class`` of the dataclass that checks its parameters, None
+    where they are several blocks, as evaluate's), ``block`` (their place in the workflow's config),
+    ``progress`` (it takes ``--no-progress``)."""
+
+    command: str
+    help: str
+    run: str
+    ports: tuple[Port, ...]
+    config: str | None = None
+    block: str | None = None  # where its parameters sit in the workflow's config (``*``: any name)
+    progress: bool = False
+
+    def __post_init__(self):
+        names = [p.name for p in self.ports]
+        if len(set(names)) != len(names):
+            raise ValueError(f"stage {self.command}: a port name is used twice ({', '.join(names)})")
+        for p in self.ports:
+            if p.beside is not None and p.beside not in [q.name for q in self.outputs if q.beside is None]:
+                raise ValueError(f"stage {self.command}: '{p.name}' is beside '{p.beside}', which is not an output")
+
+    @property
+    def inputs(self) -> tuple[Port, ...]:
+        return tuple(p for p in self.ports if not p.output)
+
+    @property
+    def outputs(self) -> tuple[Port, ...]:
+        return tuple(p for p in self.ports if p.output)
+
+    def port(self, name: str) -> Port:
+        for p in self.ports:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def argv(self, inputs: Mapping[str, object], outputs: Mapping[str, object]) -> list[str]:
+        """The command's options for the files given by port name (``inputs`` and ``outputs``; None or
+        an empty list: not given), in declaration order -> ``[command, --opt, path, ...]``. Raises
+        ValueError naming an unknown file or a missing required one."""
+        given = {}
+        for kind, files in (("input", inputs), ("output", outputs)):
+            for name, value in files.items():
+                if isinstance(value, (list, tuple)):
+                    if len(value) > 1:
+                        raise ValueError(f"stage {self.command}: {kind} '{name}' is {len(value)} files, not one")
+                    value = value[0] if value else None
+                if value is None:
+                    continue
+                try:
+                    p = self.port(name)
+                except KeyError:
+                    p = None
+                if p is None or p.output != (kind == "output"):
+                    known = ", ".join(q.name for q in (self.outputs if kind == "output" else self.inputs))
+                    raise ValueError(f"stage {self.command}: no {kind} named '{name}' (its {kind}s: {known})") from None
+                given[name] = value
+        missing = [p.name for p in self.ports if p.required and p.name not in given]
+        if missing:
+            raise ValueError(f"stage {self.command}: required file(s) {', '.join(missing)} not given")
+        out = [self.command]
+        for p in self.ports:
+            if p.name not in given:
+                continue
+            if p.beside is None:
+                out += [p.option, str(given[p.name])]
+                continue
+            path, main = Path(str(given[p.name])), Path(str(given.get(p.beside, "")))
+            if path != main.with_suffix(path.suffix):
+                raise ValueError(f"stage {self.command}: '{p.name}' ({path}) is written beside '{p.beside}' "
+                                 f"({main}), as {main.with_suffix(path.suffix)}")
+        return out
+
+    def command_line(self, inputs: Mapping[str, object], outputs: Mapping[str, object]) -> str:
+        """:meth:`argv` as one shell-quoted string."""
+        return " ".join(shlex.quote(a) for a in self.argv(inputs, outputs))
+
+
+_CONTENT = In("content", "content points: the surface samples, or the content scene (PLY)")
+_STYLE = In("style", "style scene, cleaned (PLY)")
+_CLUSTERS = In("clusters", "k-means labels of the content points (NPZ, stage 3)")
+_REGISTRATION = In("registration", "per-cluster similarity transforms (NPZ, stage 4a)")
+
+STAGES: dict[str, Stage] = {s.command: s for s in (
+    Stage("pretrain", "stage 1: regularized 3DGS pretraining from a Blender-format folder", "run_pretrain", (
+        In("data", "folder with transforms_train.json and its images"),
+        In("checkpoint", "checkpoint file: resumed from when it exists, written every checkpoint_every steps",
+           required=False),
+        In("init", "initial point cloud or 3DGS PLY (default: init_points random points in a cube around the "
+                   "cameras' target)", required=False),
+        Out("ply", "the trained scene (PLY)"),
+        Out("csv", "training log, one row per logged step (CSV)"),
+        Out("json", "held-out evaluation: PSNR, SSIM, time, Gaussians (JSON)"),
+    ), "wast3d.pretrain:PretrainConfig", "scenes.*.pretrain", progress=True),
+    Stage("surface", "stage 2: sample the content's surface (or pass it through when disabled)", "run_surface", (
+        In("scene", "trained content scene (PLY)"),
+        Out("ply", "surface samples with colour and normal (PLY)"),
+        Out("json", "what was sampled, kept and dropped (JSON)"),
+    ), "wast3d.surface:SurfaceConfig", "scenes.*.surface"),
+    Stage("style-clean", "stage 2 for a style: drop floaters outside the patch, haze and hidden Gaussians",
+          "run_style_clean", (
+              In("scene", "trained style scene (PLY)"),
+              In("labels_from", "labelled PLY the style was rendered from (each Gaussian takes its nearest "
+                                "source's element label)", required=False),
+              Out("ply", "cleaned style (PLY)"),
+              Out("json", "what was dropped and why (JSON)"),
+          ), "wast3d.surface:StyleCleanConfig", "scenes.*.style_clean"),
+    Stage("cluster", "stage 3: k-means of the content on position and colour", "run_cluster", (
+        _CONTENT,
+        Out("npz", "labels, centroids, sizes, outward normals (NPZ)"),
+        Out("json", "clusters' count and sizes (JSON)", beside="npz"),
+        Out("picture", "the clusters in colour (PNG)", required=False),
+    ), "wast3d.clustering:ClusterConfig", "partitions.*.cluster"),
+    Stage("register", "stage 4a: per-cluster registration to the style scene (eq. 7)", "run_register", (
+        _CONTENT, _CLUSTERS, _STYLE,
+        Out("npz", "rotation, scale, translation and residual per cluster (NPZ)"),
+        Out("json", "residuals before and after, base scale, style spacing (JSON)", beside="npz"),
+        Out("picture", "six clusters over their style neighbourhoods (PNG)", required=False),
+    ), "wast3d.registration:RegistrationConfig", "partitions.*.register"),
+    Stage("select", "stage 4b: style Gaussians of each cluster (eq. 8, or the footprint)", "run_select", (
+        _CONTENT, _CLUSTERS, _STYLE, _REGISTRATION,
+        Out("npz", "style indices per cluster as offsets + indices (NPZ)"),
+        Out("json", "selection sizes and thinning (JSON)", beside="npz"),
+    ), "wast3d.selection:SelectConfig", "partitions.*.select"),
+    Stage("stylize", "stage 5: minimize the Sinkhorn divergence per cluster (eq. 9)", "run_stylize", (
+        _CONTENT, _CLUSTERS, _STYLE, _REGISTRATION,
+        In("selection", "style indices per cluster (NPZ, stage 4b)"),
+        Out("ply", "the stylized scene before scale readjustment (PLY)"),
+        Out("npz", "each Gaussian's cluster and its position before the flow (NPZ)"),
+        Out("csv", "loss per cluster and step (CSV)"),
+        Out("json", "time, device, losses first and last, the config (JSON)", beside="csv"),
+        Out("png", "the loss curves (PNG)", beside="csv"),
+    ), "wast3d.stylize:StylizeConfig", "experiments.*.stylize", progress=True),
+    Stage("rescale", "stage 6: readjust scales from the change of mean nearest-neighbour distance", "run_rescale", (
+        In("stylized", "the stylized scene (PLY, stage 5)"),
+        In("stylize_npz", "its clusters and positions before the flow (NPZ, stage 5)"),
+        Out("ply", "the result (PLY)"),
+        Out("json", "the scale ratios' quantiles (JSON)", beside="ply"),
+    ), "wast3d.rescale:RescaleConfig", "experiments.*.rescale"),
+    Stage("render", "stage 7: turntable (PNG frames + GIF), key views and close-up with depth and normals",
+          "run_render", (
+              In("scene", "scene to render (PLY)"),
+              In("reference", "scene the cameras are fitted to (PLY; the content, so that every method is seen alike)"),
+              Out("folder", "render folder"),
+          ), "wast3d.render:RenderConfig", "evaluation.render", progress=True),
+    Stage("texture-reference", "stage 7: the style rendered at the pixel scale its elements have on the content's "
+          "renders (the reference of texture_swd)", "run_texture_reference", (
+              _STYLE, In("content", "content scene the renders are fitted to (PLY)"),
+              In("registration", "its base scale s0 sets the elements' size (NPZ)", required=False),
+              Out("folder", "render folder"),
+          ), "wast3d.render:RenderConfig", "evaluation.render", progress=True),
+    Stage("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
+          "run_colour_transfer", (
+              In("content", "content scene (PLY)"), _STYLE,
+              Out("ply", "the recoloured content (PLY)"),
+              Out("json", "time, device, config (JSON)", beside="ply"),
+          ), "wast3d.baselines:ColourTransferConfig", "evaluation.colour_transfer"),
+    Stage("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result", "run_evaluate", (
+        In("result", "the result scene (PLY)"),
+        In("content", "content scene (PLY)"),
+        _STYLE,
+        In("result_render", "the result's render folder (stage 7)"),
+        In("style_render", "the style's render folder"),
+        In("texture_reference", "the texture reference's render folder"),
+        In("content_render", "the unstylized content's render folder, with the result's cameras"),
+        In("stylize_npz", "the result's clusters (NPZ, stage 5): element metrics per copy", required=False),
+        Out("json", "every metric (JSON)"),
+    )),
+)}
+
+
