@@ -27,13 +27,12 @@ rule render_method:
 rule render_scene:
     input:
         scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
-        reference=f"{RESULTS}/scenes/{{scene}}/scene.ply",  # its own cameras
     output:
         folder=directory(f"{RESULTS}/render/scenes/{{scene}}"),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
-        args=stage_args("render"),
+        args=stage_args("render", reference=lambda w: f"{RESULTS}/scenes/{w.scene}/scene.ply"),  # its own cameras
     conda:
         "../envs/wast3d.yaml"
     log:
