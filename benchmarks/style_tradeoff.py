@@ -109,8 +109,7 @@ def main() -> None:
     from wast3d.metrics import content_chamfer
     from wast3d.ply import write_ply
     from wast3d.registration import mean_spacing
-    from wast3d.sinkhorn import SinkhornConfig
-    from wast3d.stylize import SINKHORN_DEFAULTS, StylizeConfig
+    from wast3d.stylize import StylizeConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"],
@@ -154,8 +153,7 @@ def main() -> None:
                 if v["reg"] not in runners:
                     s0 = mean_spacing(style.means) / h
                     runners[v["reg"]] = PairRunner(content, style, reg_scale=0.0 if v["reg"] == 1.0 else v["reg"] * s0)
-                st = dict(v["stylize"])
-                st["sinkhorn"] = SinkhornConfig(**{**SINKHORN_DEFAULTS, **st.get("sinkhorn", {})})
+                st = dict(v["stylize"])  # a partial sinkhorn block keeps the stage's defaults
                 result, secs, curves = runners[v["reg"]].run(v["select"].get("k", 1), StylizeConfig(**st), v["bound"],
                                                             mode=v["select"]["mode"], radius=v["select"].get("radius", 1.0))
             shutil.rmtree(tmp / f"{spec}_{name}", ignore_errors=True)  # a re-run variant: never an old render

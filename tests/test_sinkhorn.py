@@ -500,3 +500,18 @@ def test_smoothing_within_a_radius_reaches_as_far_whatever_the_density():
     assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4, smooth_radius=0.0)) is None
     with pytest.raises(ValueError, match="smooth_radius"):
         StylizeConfig(smooth_radius=-1.0)
+
+
+def test_stylize_solver_defaults_live_in_one_dataclass():
+    """Eq. 9's solver defaults (gamma 0.3 of the cluster radius, tol 1e-3) are StylizeSinkhornConfig's
+    fields; a partial block keeps them, an unknown key is named."""
+    from wast3d.sinkhorn import SinkhornConfig
+    from wast3d.stylize import StylizeConfig, StylizeSinkhornConfig
+
+    assert (SinkhornConfig().blur, SinkhornConfig().tol) == (0.05, 0.0)  # the solver's own, for other callers
+    c = StylizeConfig(sinkhorn={"scaling": 0.7})
+    assert isinstance(c.sinkhorn, StylizeSinkhornConfig)
+    assert (c.sinkhorn.blur, c.sinkhorn.tol, c.sinkhorn.scaling) == (0.3, 1e-3, 0.7)
+    assert StylizeConfig().sinkhorn == StylizeSinkhornConfig()
+    with pytest.raises(ValueError, match="stylize.sinkhorn: unknown parameter.*blurr"):
+        StylizeConfig(sinkhorn={"blurr": 0.3})

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -64,13 +64,19 @@ log = logging.getLogger(__name__)
 FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
 
 
-# eq. 9's solver settings unless the config says otherwise: gamma 30 % of the cluster radius (why not the
-# paper's 0.05: docs/method.md, stage 5), potentials converged to 1e-3 eps at every step
-SINKHORN_DEFAULTS = {"blur": 0.3, "tol": 1e-3}
 BLUR_UNITS = ("cluster", "scene")
 MASSES = ("uniform", "area", "style-area")
 SMOOTH_AXES = ("all", "up")
 PART_MOTIONS = ("translation", "rigid")
+
+
+@dataclass
+class StylizeSinkhornConfig(SinkhornConfig):
+    """Eq. 9's solver settings: gamma 30 % of the cluster radius (why not the paper's 0.05:
+    docs/method.md, stage 5), potentials converged to 1e-3 eps at every step."""
+
+    blur: float = 0.3
+    tol: float = 1e-3
 
 
 @dataclass
@@ -104,7 +110,7 @@ class StylizeConfig:
     parts_motion: str = "rigid"  # each part's step: its mean ("translation") or its best rigid motion ("rigid")
     parts_max_aspect: float = 0.16  # parts only on a style whose relief aspect (registration.relief) is at most
     # this: elements about a relief length in every direction (pebbles, boulders), not blades or strands
-    sinkhorn: SinkhornConfig = field(default_factory=lambda: SinkhornConfig(**SINKHORN_DEFAULTS))
+    sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
 
     def __post_init__(self):
         if self.features not in FEATURES:
@@ -130,7 +136,11 @@ class StylizeConfig:
         if self.blur_units not in BLUR_UNITS:
             raise ValueError(f"stylize.blur_units must be one of {BLUR_UNITS}, got '{self.blur_units}'")
         if isinstance(self.sinkhorn, dict):
-            self.sinkhorn = SinkhornConfig(**{**SINKHORN_DEFAULTS, **self.sinkhorn})
+            known = {f.name for f in fields(StylizeSinkhornConfig)}
+            unknown = sorted(set(self.sinkhorn) - known)
+            if unknown:
+                raise ValueError(f"stylize.sinkhorn: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+            self.sinkhorn = StylizeSinkhornConfig(**self.sinkhorn)
 
 
 def normalize_pair(content: torch.Tensor, style: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
