@@ -28,7 +28,7 @@ rule all:
         expand(f"{RESULTS}/scenes/{{scene}}/preview.png", scene=USED_SCENES),
         [f"{RESULTS}/stylize/{c}__{s}/{e}/{f}" for c, s in PAIRS for e in RUN for f in ("preview.png", "losses.png")],
         f"{RESULTS}/tables/{TABLE}.csv",
-        [f"{RESULTS}/render/pairs/{c}__{s}/{e}" for c, s in PAIRS for e in RUN],
+        [results("render_pair", content=c, style=s, method=e) for c, s in PAIRS for e in RUN],
         f"{RESULTS}/tables/table1.csv",
         [f"{RESULTS}/figures/{c}__{s}.png" for c, s in TABLE1_PAIRS],
         [f"{RESULTS}/figures/{c}__{s}_turntables.html" for c, s in TABLE1_PAIRS],

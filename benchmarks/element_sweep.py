@@ -33,6 +33,7 @@ def parse_value(v: str):
 def main(argv=None) -> None:
     from wast3d import pipeline
     from wast3d.render import comparison_sheet
+    from wast3d.stages import artifact
 
     ap = argparse.ArgumentParser()
     ap.add_argument("pair", help="CONTENT__STYLE, as under results/stylize")
@@ -48,13 +49,15 @@ def main(argv=None) -> None:
     key, values = a.set.split("=", 1)
     content, style = a.pair.split("__")
     R = a.results
-    content_ply = R / "scenes" / content / "scene.ply"
-    if (R / "scenes" / content / "surface.ply").exists():
-        content_ply = R / "scenes" / content / "surface.ply"
-    style_ply = R / "scenes" / style / ("style.ply" if (R / "scenes" / style / "style.ply").exists() else "scene.ply")
-    clusters = R / "partition" / content / part / "clusters.npz"
-    reg = R / "register" / a.pair / part / "registration.npz"
-    sel = R / "register" / a.pair / part / "selection.npz"
+    content_ply = Path(artifact("surface", R, scene=content))
+    if not content_ply.exists():
+        content_ply = Path(artifact("scene", R, scene=content))
+    style_ply = Path(artifact("style", R, scene=style))
+    if not style_ply.exists():
+        style_ply = Path(artifact("scene", R, scene=style))
+    clusters = artifact("clusters", R, content=content, partition=part)
+    reg = artifact("registration", R, content=content, style=style, partition=part)
+    sel = artifact("selection", R, content=content, style=style, partition=part)
     ev = cfg.get("evaluation", {})
     render_cfg = ev.get("render", {})
     eval_cfg = {k: ev[k] for k in ("metrics", "texture", "crops", "clip", "elements") if k in ev}
@@ -80,9 +83,10 @@ def main(argv=None) -> None:
         pipeline.run_render(scene=d / "final.ply", reference=content_ply, out_folder=d / "render", params=render_cfg,
                             progress=False)
         pipeline.run_evaluate(result=d / "final.ply", content=content_ply, style=style_ply, result_render=d / "render",
-                              style_render=R / "render" / "scenes" / style,
-                              texture_reference=R / "render" / "texture_reference" / a.pair,
-                              content_render=R / "render" / "pairs" / a.pair / "input", out_json=d / "eval.json",
+                              style_render=artifact("render_scene", R, scene=style),
+                              texture_reference=artifact("texture_reference", R, content=content, style=style),
+                              content_render=artifact("render_pair", R, content=content, style=style, method="input"),
+                              out_json=d / "eval.json",
                               params=eval_cfg, stylize_npz=d / "stylize.npz")
         m = json.loads((d / "eval.json").read_text())
         rows.append({"setting": name, "sinkhorn_seconds": secs,

@@ -40,6 +40,7 @@ def main(argv=None) -> None:
     from wast3d.elements import ElementConfig, copy_ids, element_intact
     from wast3d.io_utils import load_npz
     from wast3d.ply import read_ply
+    from wast3d.stages import artifact
 
     ap = argparse.ArgumentParser()
     ap.add_argument("pairs", nargs="+")
@@ -50,20 +51,20 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     rows = []
     for pair in a.pairs:
-        ev = a.results / "eval" / pair
+        content, style = pair.split("__")
         for method, role in (("selected", "collage (positive)"), ("default", "ours"), ("no_parts", "ours without parts"),
                              (a.seed_experiment, "ours, other seeds"), ("input", "content (negative)"),
                              ("colour_ot", "colour transfer (negative)")):
-            f = ev / f"{method}.json"
+            f = Path(artifact("eval", a.results, content=content, style=style, method=method))
             if not f.exists():
                 continue
             m = json.loads(f.read_text())
             rows.append({"pair": pair, "control": role, "method": method, "element_share_ratio": m.get("element_share_ratio"),
                          "element_intact": m.get("element_intact"), "coverage": m.get("coverage"),
                          "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1")})
-        d = a.results / "stylize" / pair / "default"
-        res = read_ply(d / "final.ply")
-        npz = load_npz(d / "stylize.npz")
+        ours = dict(results=a.results, content=content, style=style, experiment="default")
+        res = read_ply(artifact("final", **ours))
+        npz = load_npz(artifact("stylize_npz", **ours))
         clusters = torch.from_numpy(npz["labels"])
         before = torch.from_numpy(npz["before_means"])
         g = torch.Generator().manual_seed(0)
@@ -95,12 +96,14 @@ def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds
     from wast3d.pipeline import run_render
     from wast3d.ply import read_ply, write_ply
     from wast3d.render import read_frames
+    from wast3d.stages import artifact
 
-    ours = json.loads((results / "eval" / pair / "default.json").read_text())
-    render_dir = results / "render" / "pairs" / pair
-    params = json.loads((render_dir / "default" / "render.json").read_text())["config"]
+    names = dict(zip(("content", "style"), pair.split("__")))
+    ours = json.loads(Path(artifact("eval", results, **names, method="default")).read_text())
+    render_dir = Path(artifact("render_pair", results, **names, method="default"))
+    params = json.loads((render_dir / "render.json").read_text())["config"]
     tcfg = TextureConfig(**ours["config"]["texture"])
-    reference = read_frames(results / "render" / "texture_reference" / pair)
+    reference = read_frames(artifact("texture_reference", results, **names))
     with tempfile.TemporaryDirectory(prefix="wast3d_confetti_") as tmp:
         ply = Path(tmp) / "confetti.ply"
         write_ply(ply, confetti)
@@ -111,7 +114,7 @@ def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds
     mcfg = MetricsConfig(**ours["config"]["metrics"])
     style = read_ply(ours["style"]).means
     relief = relief_w1(confetti.means, style, mcfg)
-    own = read_frames(render_dir / "default")
+    own = read_frames(render_dir)
     swds = [texture_levels(own, reference, replace(tcfg, seed=k))["texture_swd"] for k in range(seeds)]
     result = read_ply(ours["result"]).means
     reliefs = [relief_w1(result, style, replace(mcfg, seed=k)) for k in range(seeds)]

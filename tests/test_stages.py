@@ -84,3 +84,18 @@ def test_stage_reference_page_is_generated_from_the_declarations():
     for st in STAGES.values():
         assert f"## `wast3d {st.command}`" in page
         assert all(f"`{p.option}`" in page for p in st.ports if p.beside is None)
+
+
+def test_artifact_paths_fill_the_wildcards_given_and_keep_the_others():
+    from wast3d.stages import PATHS, artifact
+
+    assert artifact("final", "res", content="ant", style="grass", experiment="default") == \
+        str(Path("res") / "stylize" / "ant__grass" / "default" / "final.ply")
+    assert artifact("eval", content="ant", style="grass") == "eval/ant__grass/{method}.json"  # a rule's pattern
+    assert artifact("final", method="colour_ot") == "stylize/{content}__{style}/colour_ot/final.ply"  # a method's files
+    assert artifact("rule_benchmark", rule="sinkhorn", job="a__b_c") == "benchmarks/rules/sinkhorn_a__b_c.tsv"
+    with pytest.raises(KeyError):
+        artifact("finale")
+    rules = "".join(p.read_text() for p in (ROOT / "workflow" / "rules").glob("*.smk"))
+    for name in PATHS:  # every declared artifact is what some rule reads or writes
+        assert f'results("{name}"' in rules or f'beside("{name}"' in rules, name

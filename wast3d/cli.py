@@ -134,10 +134,13 @@ def cmd_run(sub):
         log.info("run: %s", " ".join(cmd))
         rc = subprocess.run(cmd).returncode
         if rc == 0 and not a.dry_run:
+            from .stages import artifact
+
             res = a.out / "results"
-            final = res / "stylize" / f"{c}__{s}" / "default" / "final.ply"
+            final = artifact("final", res, content=c, style=s, experiment="default")
             log.info("run: done. Result: %s; renders: %s; Table 1: %s; view: wast3d view %s %s %s", final,
-                     res / "render" / "pairs" / f"{c}__{s}", res / "tables" / "table1.md", a.content, a.style, final)
+                     Path(artifact("render_pair", res, content=c, style=s, method="default")).parent,
+                     res / "tables" / "table1.md", a.content, a.style, final)
         return rc
 
     return run

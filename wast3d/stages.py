@@ -224,3 +224,41 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
 )}
 
 
+
+
+# ---- artifact paths ---------------------------------------------------------------------------------
+
+# Where the workflow keeps each artifact, relative to its results folder, with Snakemake's wildcards:
+# the rules' inputs and outputs, the tables, `wast3d run` and the benchmarks all read them from here.
+PATHS: dict[str, str] = {
+    "scene": "scenes/{scene}/scene.ply",
+    "surface": "scenes/{scene}/surface.ply",
+    "style": "scenes/{scene}/style.ply",
+    "clusters": "partition/{content}/{partition}/clusters.npz",
+    "registration": "register/{content}__{style}/{partition}/registration.npz",
+    "selection": "register/{content}__{style}/{partition}/selection.npz",
+    "stylized": "stylize/{content}__{style}/{experiment}/stylized.ply",
+    "stylize_npz": "stylize/{content}__{style}/{experiment}/stylize.npz",
+    "losses": "stylize/{content}__{style}/{experiment}/losses.csv",
+    "final": "stylize/{content}__{style}/{experiment}/final.ply",
+    "render_pair": "render/pairs/{content}__{style}/{method}",
+    "render_scene": "render/scenes/{scene}",
+    "texture_reference": "render/texture_reference/{content}__{style}",
+    "eval": "eval/{content}__{style}/{method}.json",
+    "rule_benchmark": "benchmarks/rules/{rule}_{job}.tsv",
+}
+
+
+class _Keep(dict):
+    def __missing__(self, key):
+        return "{" + key + "}"
+
+
+def artifact(name: str, results: str | Path | None = None, **wildcards) -> str:
+    """The path of artifact ``name`` (:data:`PATHS`) with the given wildcards filled in (the others stay
+    ``{wildcard}``, for a rule), under ``results`` when given. A method's files sit where an
+    experiment's do (``method`` fills ``experiment`` too)."""
+    if "method" in wildcards:
+        wildcards.setdefault("experiment", wildcards["method"])
+    path = PATHS[name].format_map(_Keep(**{k: str(v) for k, v in wildcards.items()}))
+    return path if results is None else str(Path(results) / path)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pandas as pd
 
 from .io_utils import atomic_path, read_json
+from .stages import artifact
 
 log = logging.getLogger(__name__)
 
@@ -24,11 +25,20 @@ def _bench(path: Path) -> dict:
         return {}
 
 
+def _beside(name: str, suffix: str, results: Path, **wildcards) -> Path:
+    """The report a stage writes beside artifact ``name`` (``losses.json`` beside ``losses.csv``)."""
+    return Path(artifact(name, results, **wildcards)).with_suffix(suffix)
+
+
+def _rule_benchmark(results: Path, rule: str, *wildcards: str) -> Path:
+    return Path(artifact("rule_benchmark", results, rule=rule, job="_".join(wildcards)))
+
+
 def run_row(results: Path, content: str, style: str, experiment: str) -> dict:
-    d = Path(results) / "stylize" / f"{content}__{style}" / experiment
-    loss = read_json(d / "losses.json")
-    final = read_json(d / "final.json")
-    b = _bench(Path(results) / "benchmarks" / "rules" / f"sinkhorn_{content}__{style}_{experiment}.tsv")
+    pair = dict(content=content, style=style, experiment=experiment)
+    loss = read_json(_beside("losses", ".json", results, **pair))
+    final = read_json(_beside("final", ".json", results, **pair))
+    b = _bench(_rule_benchmark(results, "sinkhorn", f"{content}__{style}", experiment))
     cfg = loss.get("config", {})
     row = {
         "content": content, "style": style, "experiment": experiment,
@@ -88,23 +98,23 @@ METRIC_COLUMNS = ("content_chamfer", "coarse_chamfer", "coverage", "coverage_ele
 def method_benchmarks(results: Path, content: str, style: str, method: str, partition: str | None) -> list[Path]:
     """The Snakemake benchmark files of the stages a method needs beyond the shared ones (pretraining,
     surface sampling and k-means are shared by every method and not counted)."""
-    b = Path(results) / "benchmarks" / "rules"
     pair = f"{content}__{style}"
     if method == "colour_ot":
-        return [b / f"colour_transfer_{pair}.tsv"]
+        return [_rule_benchmark(results, "colour_transfer", pair)]
     if partition is None:  # the unstylized input
         return []
-    return [b / f"register_{pair}_{partition}.tsv", b / f"select_{pair}_{partition}.tsv",
-            b / f"sinkhorn_{pair}_{method}.tsv", b / f"rescale_{pair}_{method}.tsv"]
+    return [_rule_benchmark(results, "register", pair, partition), _rule_benchmark(results, "select", pair, partition),
+            _rule_benchmark(results, "sinkhorn", pair, method), _rule_benchmark(results, "rescale", pair, method)]
 
 
 def table1_row(results: Path, content: str, style: str, method: str, partition: str | None, label: str) -> dict:
     """One row of Table 1 from ``results/eval/{content}__{style}/{method}.json`` and benchmark files."""
-    ev = read_json(Path(results) / "eval" / f"{content}__{style}" / f"{method}.json")
+    ev = read_json(Path(artifact("eval", results, content=content, style=style, method=method)))
     benches = [_bench(p) for p in method_benchmarks(results, content, style, method, partition)]
     # where the method's own stage recorded its device (the unstylized input has no such stage)
-    report = "final.json" if method == "colour_ot" else ("losses.json" if partition is not None else None)
-    device = read_json(Path(results) / "stylize" / f"{content}__{style}" / method / report).get("device") if report else None
+    report = "final" if method == "colour_ot" else ("losses" if partition is not None else None)
+    device = read_json(_beside(report, ".json", results, content=content, style=style, method=method)).get("device") \
+        if report else None
     clip = ev.get("clip_similarity")
     row = {"content": content, "style": style, "method": label, "run": method,
            "clip_similarity_pct": clip if clip is not None else "not computed",

@@ -131,7 +131,7 @@ def scenes_needing_surface():
 
 def content_points(scene):
     """The content Gaussians that k-means sees: the surface samples, or the scene itself."""
-    return f"{RESULTS}/scenes/{scene}/{'surface' if needs_surface(scene) else 'scene'}.ply"
+    return results("surface" if needs_surface(scene) else "scene", scene=scene)
 
 
 STYLES = sorted({s for _, s in PAIRS + TABLE1_PAIRS})
@@ -148,7 +148,7 @@ def needs_style_clean(scene):
 
 def style_points(scene):
     """The style Gaussians that registration, selection and stylization see: cleaned, or the scene itself."""
-    return f"{RESULTS}/scenes/{scene}/{'style' if needs_style_clean(scene) else 'scene'}.ply"
+    return results("style" if needs_style_clean(scene) else "scene", scene=scene)
 
 
 def stage_json(params):
@@ -171,10 +171,30 @@ def _load_stages():
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
-    return mod.STAGES
+    return mod
 
 
-STAGES = _load_stages()
+_DECLARATIONS = _load_stages()
+STAGES = _DECLARATIONS.STAGES
+
+
+def results(name, **wildcards):
+    """An artifact's path under RESULTS (wast3d/stages.py: PATHS); wildcards not given stay {wildcards}."""
+    return _DECLARATIONS.artifact(name, RESULTS, **wildcards)
+
+
+def pretrain_data(w):
+    """The Blender-format folder a scene is pretrained from."""
+    return SCENES[w.scene]["path"]
+
+
+def pretrain_checkpoint(w):
+    return f"{RESULTS}/scenes/{w.scene}/pretrain.ckpt"
+
+
+def beside(name, suffix, **wildcards):
+    """The file a stage writes beside artifact ``name``, with the same stem (``clusters.json``)."""
+    return os.path.splitext(results(name, **wildcards))[0] + suffix
 
 
 def stage_args(command, ignore=(), **paths):
@@ -252,7 +272,7 @@ def method_ply(w):
     """The Gaussians a method produced for a pair (the input: the content points k-means saw)."""
     if w.method == "input":
         return content_points(w.content)
-    return f"{RESULTS}/stylize/{w.content}__{w.style}/{w.method}/final.ply"
+    return results("final", content=w.content, style=w.style, experiment=w.method)
 
 
 def table1_rows():
@@ -272,7 +292,7 @@ SHEET_METHODS = [m for m in TABLE1_METHODS if m != "input"]  # the comparison sh
 
 def sheet_method_renders(w):
     """The render folders of SHEET_METHODS for one pair (the `methods` input of those rules)."""
-    return [f"{RESULTS}/render/pairs/{w.content}__{w.style}/{m}" for m in SHEET_METHODS]
+    return [results("render_pair", content=w.content, style=w.style, method=m) for m in SHEET_METHODS]
 
 
 def sheet_columns(input, reference=True):

@@ -9,7 +9,7 @@ rule render_method:
         scene=method_ply,
         reference=lambda w: content_points(w.content),
     output:
-        folder=directory(f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}"),
+        folder=directory(results("render_pair")),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
@@ -26,13 +26,13 @@ rule render_method:
 
 rule render_scene:
     input:
-        scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        scene=results("scene"),
     output:
-        folder=directory(f"{RESULTS}/render/scenes/{{scene}}"),
+        folder=directory(results("render_scene")),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
-        args=stage_args("render", reference=lambda w: f"{RESULTS}/scenes/{w.scene}/scene.ply"),  # its own cameras
+        args=stage_args("render", reference=lambda w: results("scene", scene=w.scene)),  # its own cameras
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -47,9 +47,9 @@ rule texture_reference:
     input:
         style=lambda w: style_points(w.style),
         content=lambda w: content_points(w.content),
-        registration=f"{RESULTS}/register/{{content}}__{{style}}/{REFERENCE_PARTITION}/registration.npz",
+        registration=results("registration", partition=REFERENCE_PARTITION),
     output:
-        folder=directory(f"{RESULTS}/render/texture_reference/{{content}}__{{style}}"),
+        folder=directory(results("texture_reference")),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("render", {})),
@@ -69,8 +69,8 @@ rule colour_transfer:
         content=lambda w: content_points(w.content),
         style=lambda w: style_points(w.style),
     output:
-        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/colour_ot/final.ply",
-        json=f"{RESULTS}/stylize/{{content}}__{{style}}/colour_ot/final.json",
+        ply=results("final", method="colour_ot"),
+        json=beside("final", ".json", method="colour_ot"),
     params:
         exe=WAST3D,
         cfg=stage_json(EVALUATION.get("colour_transfer", {})),
@@ -80,7 +80,7 @@ rule colour_transfer:
     log:
         f"{RESULTS}/logs/colour_transfer/{{content}}__{{style}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/rules/colour_transfer_{{content}}__{{style}}.tsv"
+        results("rule_benchmark", rule="colour_transfer", job="{content}__{style}")
     shell:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
@@ -90,14 +90,14 @@ rule evaluate:
         result=method_ply,
         content=lambda w: content_points(w.content),
         style=lambda w: style_points(w.style),
-        result_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/{{method}}",
-        style_render=f"{RESULTS}/render/scenes/{{style}}",
-        texture_reference=f"{RESULTS}/render/texture_reference/{{content}}__{{style}}",
-        content_render=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
-        stylize_npz=lambda w: [f"{RESULTS}/stylize/{w.content}__{w.style}/{w.method}/stylize.npz"] if w.method in EXPERIMENTS else [],
+        result_render=results("render_pair"),
+        style_render=results("render_scene", scene="{style}"),
+        texture_reference=results("texture_reference"),
+        content_render=results("render_pair", method="input"),
+        stylize_npz=lambda w: [results("stylize_npz", content=w.content, style=w.style, experiment=w.method)] if w.method in EXPERIMENTS else [],
         clip=clip_inputs(),
     output:
-        json=f"{RESULTS}/eval/{{content}}__{{style}}/{{method}}.json",
+        json=results("eval"),
     params:
         exe=WAST3D,
         cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "texture", "crops", "clip", "elements") if k in EVALUATION}),
@@ -114,9 +114,9 @@ rule evaluate:
 
 rule comparison_sheet:
     input:
-        content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
-        style=f"{RESULTS}/render/scenes/{{style}}",
-        reference=f"{RESULTS}/render/texture_reference/{{content}}__{{style}}",
+        content=results("render_pair", method="input"),
+        style=results("render_scene", scene="{style}"),
+        reference=results("texture_reference"),
         methods=sheet_method_renders,
     output:
         report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
@@ -135,8 +135,8 @@ rule comparison_sheet:
 
 rule turntable_page:
     input:
-        content=f"{RESULTS}/render/pairs/{{content}}__{{style}}/input",
-        style=f"{RESULTS}/render/scenes/{{style}}",
+        content=results("render_pair", method="input"),
+        style=results("render_scene", scene="{style}"),
         methods=sheet_method_renders,
     output:
         report(f"{RESULTS}/figures/{{content}}__{{style}}_turntables.html", caption="../report/turntables.rst",
@@ -156,7 +156,7 @@ rule turntable_page:
 
 rule table1:
     input:
-        [f"{RESULTS}/eval/{c}__{s}/{m}.json" for c, s in TABLE1_PAIRS for m in TABLE1_METHODS],
+        [results("eval", content=c, style=s, method=m) for c, s in TABLE1_PAIRS for m in TABLE1_METHODS],
     output:
         csv=f"{RESULTS}/tables/table1.csv",
         md=f"{RESULTS}/tables/table1.md",

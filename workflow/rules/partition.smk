@@ -3,10 +3,10 @@
 
 rule surface:
     input:
-        scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        scene=results("scene"),
     output:
-        ply=f"{RESULTS}/scenes/{{scene}}/surface.ply",
-        json=f"{RESULTS}/scenes/{{scene}}/surface.json",
+        ply=results("surface"),
+        json=beside("surface", ".json"),
     wildcard_constraints:
         scene=constraint(scenes_needing_surface()),
     params:
@@ -25,11 +25,11 @@ rule surface:
 
 rule style_clean:
     input:
-        scene=f"{RESULTS}/scenes/{{scene}}/scene.ply",
-        labels_from=lambda w: [f"{RESULTS}/scenes/{SCENES[w.scene]['labels_from']}/scene.ply"] if SCENES[w.scene].get("labels_from") else [],
+        scene=results("scene"),
+        labels_from=lambda w: [results("scene", scene=SCENES[w.scene]["labels_from"])] if SCENES[w.scene].get("labels_from") else [],
     output:
-        ply=f"{RESULTS}/scenes/{{scene}}/style.ply",
-        json=f"{RESULTS}/scenes/{{scene}}/style.json",
+        ply=results("style"),
+        json=beside("style", ".json"),
     wildcard_constraints:
         scene=constraint([s for s in SCENES if needs_style_clean(s)]),
     params:
@@ -50,9 +50,9 @@ rule cluster:
     input:
         content=lambda w: content_points(w.content),
     output:
-        npz=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
-        json=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.json",
-        picture=report(f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.png",
+        npz=results("clusters"),
+        json=beside("clusters", ".json"),
+        picture=report(beside("clusters", ".png"),
                    caption="../report/clusters.rst", category="Partition"),
     params:
         exe=WAST3D,
@@ -71,12 +71,12 @@ rule cluster:
 rule register:
     input:
         content=lambda w: content_points(w.content),
-        clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
+        clusters=results("clusters"),
         style=lambda w: style_points(w.style),
     output:
-        npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
-        json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.json",
-        picture=report(f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.png",
+        npz=results("registration"),
+        json=beside("registration", ".json"),
+        picture=report(beside("registration", ".png"),
                    caption="../report/registration.rst", category="Partition"),
     params:
         exe=WAST3D,
@@ -87,7 +87,7 @@ rule register:
     log:
         f"{RESULTS}/logs/register/{{content}}__{{style}}_{{partition}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/rules/register_{{content}}__{{style}}_{{partition}}.tsv"
+        results("rule_benchmark", rule="register", job="{content}__{style}_{partition}")
     shell:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
@@ -95,12 +95,12 @@ rule register:
 rule select:
     input:
         content=lambda w: content_points(w.content),
-        clusters=f"{RESULTS}/partition/{{content}}/{{partition}}/clusters.npz",
+        clusters=results("clusters"),
         style=lambda w: style_points(w.style),
-        registration=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/registration.npz",
+        registration=results("registration"),
     output:
-        npz=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.npz",
-        json=f"{RESULTS}/register/{{content}}__{{style}}/{{partition}}/selection.json",
+        npz=results("selection"),
+        json=beside("selection", ".json"),
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(PARTITIONS[w.partition].get("select", {})),
@@ -110,6 +110,6 @@ rule select:
     log:
         f"{RESULTS}/logs/select/{{content}}__{{style}}_{{partition}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/rules/select_{{content}}__{{style}}_{{partition}}.tsv"
+        results("rule_benchmark", rule="select", job="{content}__{style}_{partition}")
     shell:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"

@@ -3,18 +3,19 @@
 
 rule pretrain:
     input:
-        transforms=lambda w: f"{SCENES[w.scene]['path']}/transforms_train.json",
+        transforms=lambda w: f"{pretrain_data(w)}/transforms_train.json",
     output:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        ply=results("scene"),
         csv=f"{RESULTS}/scenes/{{scene}}/pretrain_log.csv",
         json=f"{RESULTS}/scenes/{{scene}}/pretrain_eval.json",
     wildcard_constraints:
         scene=constraint(scenes_of("images")),
     params:
         exe=WAST3D,
+        data=pretrain_data,  # parameters (tracked: a new folder re-runs) as well as the command's files
+        ckpt=pretrain_checkpoint,
         cfg=lambda w: stage_json(pretrain_params(w.scene)),
-        args=stage_args("pretrain", ignore=("transforms",), data=lambda w: SCENES[w.scene]["path"],
-                        checkpoint=lambda w: f"{RESULTS}/scenes/{w.scene}/pretrain.ckpt"),
+        args=stage_args("pretrain", ignore=("transforms",), data=pretrain_data, checkpoint=pretrain_checkpoint),
     threads: HEAVY_THREADS
     resources:
         mem_mb=16000,

@@ -3,7 +3,7 @@
 
 rule result_preview:
     input:
-        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/final.ply",
+        ply=results("final"),
     output:
         png=report(f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/preview.png",
                    caption="../report/result.rst", category="Results", subcategory="{experiment}"),

@@ -3,7 +3,7 @@
 
 rule procedural_scene:
     output:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        ply=results("scene"),
     wildcard_constraints:
         scene=constraint(scenes_of("procedural")),
     params:
@@ -26,7 +26,7 @@ rule import_ply:
     input:
         lambda w: SCENES[w.scene]["path"],
     output:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        ply=results("scene"),
     wildcard_constraints:
         scene=constraint(scenes_of("ply")),
     params:
@@ -44,7 +44,7 @@ rule import_ply:
 
 rule preview:
     input:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        ply=results("scene"),
     output:
         png=report(f"{RESULTS}/scenes/{{scene}}/preview.png", caption="../report/preview.rst", category="Scenes"),
     params:
@@ -63,7 +63,7 @@ rule preview:
 
 rule export_views:
     input:
-        ply=f"{RESULTS}/scenes/{{scene}}/scene.ply",
+        ply=results("scene"),
     output:
         json=f"{RESULTS}/views/{{scene}}/transforms_train.json",
     params:

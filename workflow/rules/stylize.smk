@@ -4,16 +4,16 @@
 rule sinkhorn:
     input:
         content=lambda w: content_points(w.content),
-        clusters=lambda w: f"{RESULTS}/partition/{w.content}/{partition_of(w)}/clusters.npz",
+        clusters=lambda w: results("clusters", content=w.content, partition=partition_of(w)),
         style=lambda w: style_points(w.style),
-        registration=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/registration.npz",
-        selection=lambda w: f"{RESULTS}/register/{w.content}__{w.style}/{partition_of(w)}/selection.npz",
+        registration=lambda w: results("registration", content=w.content, style=w.style, partition=partition_of(w)),
+        selection=lambda w: results("selection", content=w.content, style=w.style, partition=partition_of(w)),
     output:
-        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylized.ply",
-        npz=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylize.npz",
-        csv=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/losses.csv",
-        json=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/losses.json",
-        png=report(f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/losses.png",
+        ply=results("stylized"),
+        npz=results("stylize_npz"),
+        csv=results("losses"),
+        json=beside("losses", ".json"),
+        png=report(beside("losses", ".png"),
                    caption="../report/losses.rst", category="Results", subcategory="{experiment}"),
     params:
         exe=WAST3D,
@@ -28,18 +28,18 @@ rule sinkhorn:
     log:
         f"{RESULTS}/logs/sinkhorn/{{content}}__{{style}}_{{experiment}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/rules/sinkhorn_{{content}}__{{style}}_{{experiment}}.tsv"
+        results("rule_benchmark", rule="sinkhorn", job="{content}__{style}_{experiment}")
     shell:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
 
 
 rule rescale:
     input:
-        stylized=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylized.ply",
-        stylize_npz=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/stylize.npz",
+        stylized=results("stylized"),
+        stylize_npz=results("stylize_npz"),
     output:
-        ply=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/final.ply",
-        json=f"{RESULTS}/stylize/{{content}}__{{style}}/{{experiment}}/final.json",
+        ply=results("final"),
+        json=beside("final", ".json"),
     params:
         exe=WAST3D,
         cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("rescale", {})),
@@ -49,6 +49,6 @@ rule rescale:
     log:
         f"{RESULTS}/logs/rescale/{{content}}__{{style}}_{{experiment}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/rules/rescale_{{content}}__{{style}}_{{experiment}}.tsv"
+        results("rule_benchmark", rule="rescale", job="{content}__{style}_{experiment}")
     shell:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
