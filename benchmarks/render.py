@@ -54,7 +54,10 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: 
 
     torch.set_flush_denormal(True)
     from wast3d.procedural import content_scene
-    from wast3d.rendering import bin_tiles, composite_native, project, rasterize
+    try:
+        from wast3d.rasterizer import bin_tiles, composite_native, project, rasterize
+    except ImportError:  # a revision from before the module's rename (rendering.py, session 19)
+        from wast3d.rendering import bin_tiles, composite_native, project, rasterize
     from wast3d.render import fit_orbit
 
     label = backend

@@ -1,5 +1,5 @@
 """The viewer against the renderer: ``wast3d view``'s page in headless Chromium (software WebGL) against
-:func:`wast3d.rendering.rasterize` from the page's initial camera (:func:`wast3d.viewer.view_camera`).
+:func:`wast3d.rasterizer.rasterize` from the page's initial camera (:func:`wast3d.viewer.view_camera`).
 
     python benchmarks/viewer_vs_render.py SCENE.ply [SCENE.ply ...] [--browser chromium]
 
@@ -31,7 +31,7 @@ def main() -> None:
 
     from test_viewer import _free_port, _lower_half_drawn, _screenshot_when, _settled  # the browser test's
     from wast3d.formats import read_scene
-    from wast3d.rendering import rasterize
+    from wast3d.rasterizer import rasterize
     from wast3d.viewer import placed, serve, view_camera
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

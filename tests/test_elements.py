@@ -70,7 +70,7 @@ def test_transfer_takes_the_nearest_source_label():
 
 def test_element_share_of_rendered_label_channel():
     from wast3d.cameras import Camera, look_at
-    from wast3d.rendering import rasterize
+    from wast3d.rasterizer import rasterize
 
     s = style_scene("pebbles", 6000)
     cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),

@@ -267,7 +267,7 @@ def test_colour_transfer_rejects_empty_scenes():
 
 def test_closeup_is_a_crop_of_the_zoomed_render():
     from wast3d.render import closeup_camera, fit_orbit
-    from wast3d.rendering import rasterize
+    from wast3d.rasterizer import rasterize
 
     scene = random_scene(300, seed=2)
     cam = fit_orbit(scene, 1, 40)[0]

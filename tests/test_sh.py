@@ -8,7 +8,7 @@ import torch
 from conftest import random_scene, real_3dgs
 from wast3d.cameras import Camera, look_at
 from wast3d.gaussians import quat_to_rotmat
-from wast3d.rendering import rasterize
+from wast3d.rasterizer import rasterize
 from wast3d.sh import eval_sh, rotate_sh_rest, sh_basis, sh_rotation_matrices
 
 

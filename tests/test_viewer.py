@@ -148,7 +148,7 @@ def test_viewer_page_shows_what_the_renderer_shows(tmp_path):
     import imageio.v3 as iio
 
     from wast3d.ply import write_ply
-    from wast3d.rendering import rasterize
+    from wast3d.rasterizer import rasterize
     from wast3d.viewer import placed, view_camera
 
     scene = _stripes()

@@ -54,7 +54,7 @@ import torch.nn.functional as F
 
 from .datasets import Dataset
 from .gaussians import GaussianScene, num_sh_rest
-from .rendering import rasterize
+from .rasterizer import rasterize
 
 log = logging.getLogger(__name__)
 

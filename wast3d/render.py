@@ -19,7 +19,7 @@ from .datasets import write_blender
 from .gaussians import GaussianScene, shortest_axis
 from .geometry import robust_bounds
 from .io_utils import atomic_path, write_json
-from .rendering import rasterize
+from .rasterizer import rasterize
 
 log = logging.getLogger(__name__)
 

@@ -153,7 +153,7 @@ def _pixels_of(points: torch.Tensor, cam) -> tuple[torch.Tensor, torch.Tensor, t
 
 def _visible_in(scene: GaussianScene, cam, tol: float, radius: float) -> torch.Tensor:
     """[N] bool: the centre lies on the surface ``cam`` renders (|z - depth| < tol * radius, alpha > 0.5)."""
-    from .rendering import rasterize
+    from .rasterizer import rasterize
 
     r = rasterize(scene, cam)
     idx, u, v, z = _pixels_of(scene.means, cam)
@@ -216,7 +216,7 @@ def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_
     depth). About 1 for an unoccluded Gaussian seen face-on, 0 for one hidden in every view; independent
     of the resolution and of the Gaussians' sizes."""
     from .render import fit_orbit
-    from .rendering import rasterize
+    from .rasterizer import rasterize
 
     best = torch.zeros(len(scene), dtype=torch.float64)
     s = scene.detach()

@@ -7,7 +7,7 @@ the splats with its own WebGL rasterizer (view-independent colour: the DC term);
 ``max_gaussians`` keeps the page responsive for large scenes by keeping the most opaque ones.
 
 The page opens at :func:`view_camera`: a render of :func:`placed` from that camera with
-:func:`wast3d.rendering.rasterize` (DC colour, white background) is what the page shows once viser's
+:func:`wast3d.rasterizer.rasterize` (DC colour, white background) is what the page shows once viser's
 fade-in has ended (its first frames draw the splats shrunken, which reads as pale; in software WebGL
 that lasts tens of seconds). ``tests/test_viewer.py`` compares the two in headless Chromium.
 """

@@ -7,7 +7,7 @@ from torch.overrides import TorchFunctionMode
 from conftest import random_scene
 from wast3d.cameras import Camera, orbit_cameras
 from wast3d.gaussians import GaussianScene
-from wast3d.rendering import ALPHA_MIN, bin_tiles, project, rasterize
+from wast3d.rasterizer import ALPHA_MIN, bin_tiles, project, rasterize
 
 BACKENDS = ["torch", "native"]
 
@@ -79,7 +79,7 @@ def test_native_vector_lanes_match_torch_at_every_tile_size(tile):
     images that end mid-tile (37 x 29), the 0.99 alpha clamp and the early stop at T < 1e-4 (opaque
     Gaussians stacked) give the float64 PyTorch reference's images and gradients, in float64 and in
     float32."""
-    from wast3d.rendering import composite_native, composite_torch
+    from wast3d.rasterizer import composite_native, composite_torch
 
     scene = random_scene(300, seed=7, dtype=torch.float64, spread=0.6)
     scene.opacity_logits[:100] = 8.0  # alpha at the 0.99 clamp; stacked, they stop the tiles early
