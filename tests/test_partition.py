@@ -468,6 +468,34 @@ def test_recolouring_colour_outliers_keeps_every_position():
     assert m == 0 and torch.equal(same.sh_dc, odd.sh_dc)
 
 
+def test_style_cleaning_recolours_specks_by_default(tmp_path):
+    """The style stage at its defaults (no parameters) recolours planted magenta specks and says how
+    many; recolour 0 keeps them."""
+    import json
+
+    from wast3d.pipeline import run_style_clean
+    from wast3d.ply import write_ply
+    from wast3d.procedural import style_scene
+
+    s = style_scene("pebbles", 6000)
+    pick = torch.randperm(len(s), generator=torch.Generator().manual_seed(0))[:60]
+    dc = s.sh_dc.clone()
+    dc[pick] = (torch.tensor([1.0, 0.0, 1.0]) - 0.5) / 0.28209479177387814
+    write_ply(tmp_path / "s.ply", GaussianScene(**{**s.tensors(), "sh_dc": dc}, element=s.element))
+    params = {"visibility": False}  # the specks' colours, not their visibility, are under test
+    run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "c.ply", out_json=tmp_path / "c.json", params=params)
+    report = json.loads((tmp_path / "c.json").read_text())
+    assert report["recoloured_colour_outliers"] >= 50
+    from wast3d.ply import read_ply
+
+    out = read_ply(tmp_path / "c.ply")
+    magenta = ((out.rgb - torch.tensor([1.0, 0.0, 1.0])).norm(dim=1) < 0.2).sum()
+    assert magenta <= 5
+    run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "k.ply", out_json=tmp_path / "k.json",
+                    params={**params, "recolour": 0.0})
+    assert ((read_ply(tmp_path / "k.ply").rgb - torch.tensor([1.0, 0.0, 1.0])).norm(dim=1) < 0.2).sum() >= 50
+
+
 def test_relief_length_follows_element_size_not_gaussian_count():
     """The rule of registration.base_scale: the relief length of pebbles twice as large is twice as
     long; sampling the same patch with 3x fewer Gaussians, or adding floaters, barely moves it; a flat

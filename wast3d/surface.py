@@ -58,7 +58,12 @@ this rule (the procedural wicker, which is never cleaned, loses 6,535 of 30,000)
 outliers* (``colour_outliers`` > 0, off by default): Gaussians whose colour lies farther than that (RGB
 distance) from the median colour of their ``colour_k`` nearest kept neighbours; a trained patch holds
 a few percent of magenta, blue or green Gaussians inside brown and grey pebbles, mostly seen through
-gaps, which the stylization exposes as specks.
+gaps, which the stylization exposes as specks. Dropping them moves the relief (positions go), so by
+default they are *recoloured* instead (``recolour`` 0.3): a kept Gaussian farther than 0.3 from its
+neighbours' median colour takes that median, every position and label stays. On the four trained demo
+styles 8-17 % of the Gaussians are recoloured, and 78-95 % of those end closer to the colour of the
+scene they were trained from. A style whose small colour features are real (flowers in grass, flecks
+in granite) keeps them with ``recolour: 0``.
 """
 
 from __future__ import annotations
@@ -120,7 +125,7 @@ class StyleCleanConfig:
     min_seen: float = 0.05  # hidden: less than this fraction of a Gaussian is seen in its best view
     below_ground: float = 0.5  # below the ground: centre more than this many relief heights under the ground (0: off)
     colour_outliers: float = 0.0  # colour farther than this (RGB) from the median of its colour_k neighbours (0: off)
-    recolour: float = 0.0  # the same test on the kept Gaussians, which then take that median colour instead of going (0: off)
+    recolour: float = 0.3  # the same test on the kept Gaussians, which then take that median colour instead of going (0: off)
     colour_k: int = 16
     seed: int = 0
 
