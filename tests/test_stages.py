@@ -26,11 +26,10 @@ def test_each_stage_function_takes_exactly_its_declared_files(command):
     for p in st.ports:  # an optional file has a default (None), a required one none
         if p.beside is None:
             assert (sig.parameters[p.keyword].default is inspect.Parameter.empty) == p.required, p.name
-    if st.config:
-        import importlib
+    from wast3d.stages import config_class
 
-        module, cls = st.config.split(":")
-        assert hasattr(importlib.import_module(module), cls)
+    for spec in (st.config.values() if isinstance(st.config, dict) else [st.config] if st.config else []):
+        assert config_class(spec)
 
 
 def test_command_options_come_from_the_declaration():
@@ -99,3 +98,29 @@ def test_artifact_paths_fill_the_wildcards_given_and_keep_the_others():
     rules = "".join(p.read_text() for p in (ROOT / "workflow" / "rules").glob("*.smk"))
     for name in PATHS:  # every declared artifact is what some rule reads or writes
         assert f'results("{name}"' in rules or f'beside("{name}"' in rules, name
+
+
+def test_rules_pass_every_default_so_a_changed_default_reruns_the_stage():
+    """resolved_params: the config block with its dataclass's defaults filled in (what the rules pass):
+    a key written out at its default gives the same parameters as leaving it out, a default the
+    dataclass changes changes them, and a bad key is named before anything runs."""
+    from dataclasses import asdict
+
+    from wast3d.clustering import ClusterConfig
+    from wast3d.stages import resolved_params
+    from wast3d.surface import StyleCleanConfig
+
+    assert resolved_params("cluster", {}) == resolved_params("cluster", {"flatness": ClusterConfig().flatness}) \
+        == asdict(ClusterConfig())
+    assert resolved_params("style-clean", {})["recolour"] == StyleCleanConfig().recolour
+    ev = resolved_params("evaluate", {"metrics": {"patches": 8}})
+    assert ev["metrics"]["patches"] == 8 and set(ev) == {"metrics", "texture", "crops", "clip", "elements"}
+    p = resolved_params("pretrain", {"holdout_every": 4, "iterations": 10})  # data keys pass through
+    assert p["holdout_every"] == 4 and p["iterations"] == 10 and "max_views" not in p
+    assert resolved_params("stylize", {"sinkhorn": {"scaling": 0.7}})["sinkhorn"]["blur"] == 0.3
+    with pytest.raises(ValueError, match="cluster: unknown parameter.*flat\\b"):
+        resolved_params("cluster", {"flat": 1})
+    with pytest.raises(ValueError, match="evaluate: unknown parameter block.*metric\\b"):
+        resolved_params("evaluate", {"metric": {}})
+    with pytest.raises(ValueError, match="stylize.features"):  # the dataclass's own checks run too
+        resolved_params("stylize", {"features": "bogus"})

@@ -391,21 +391,18 @@ def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Pat
     :class:`~wast3d.clip_eval.ClipConfig`). ``style_render``: the style's turntable (CLIP crops);
     ``texture_reference``: the style at the result's pixel scale (:func:`run_texture_reference`, texture
     SWD); ``content_render``: the unstylized content's render with the same cameras (coverage)."""
-    from .clip_eval import ClipConfig, ClipUnavailable, CropConfig, clip_similarity, load_clip, random_crops
-    from .elements import ElementConfig
-    from .image_metrics import TextureConfig, coverage, texture_levels
-    from .metrics import MetricsConfig, weights_free_metrics
+    from .clip_eval import ClipUnavailable, clip_similarity, load_clip, random_crops
+    from .image_metrics import coverage, texture_levels
+    from .metrics import weights_free_metrics
     from .render import read_frames
+    from .stages import STAGES, config_class
 
-    blocks = ("clip", "crops", "elements", "metrics", "texture")
+    blocks = STAGES["evaluate"].config  # block name -> its dataclass
     unknown = sorted(set(params) - set(blocks))
     if unknown:
         raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(blocks)})")
-    mcfg = make_config(MetricsConfig, params.get("metrics"), "evaluate.metrics")
-    tcfg = make_config(TextureConfig, params.get("texture"), "evaluate.texture")
-    ccfg = make_config(CropConfig, params.get("crops"), "evaluate.crops")
-    kcfg = make_config(ClipConfig, params.get("clip"), "evaluate.clip")
-    ecfg = make_config(ElementConfig, params.get("elements"), "evaluate.elements")
+    cfgs = {k: make_config(config_class(spec), params.get(k), f"evaluate.{k}") for k, spec in blocks.items()}
+    mcfg, tcfg, ccfg, kcfg, ecfg = (cfgs[k] for k in ("metrics", "texture", "crops", "clip", "elements"))
     result_ply, style_ply, content_ply = result, style, content
     result, style, content = read_ply(result_ply), read_ply(style_ply), read_ply(content_ply)
     for path, scene in ((result_ply, result), (style_ply, style), (content_ply, content)):
@@ -457,7 +454,5 @@ def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Pat
             out["clip_similarity"] = clip_similarity(model, crops_a, crops_b, kcfg.batch, kcfg.device)
             out["clip_status"] = "computed"
     out.update({"result": str(result_ply), "content": str(content_ply), "style": str(style_ply),
-                "config": {"metrics": dataclasses.asdict(mcfg), "texture": dataclasses.asdict(tcfg),
-                           "crops": dataclasses.asdict(ccfg), "elements": dataclasses.asdict(ecfg),
-                           "clip": dataclasses.asdict(kcfg)}})
+                "config": {k: dataclasses.asdict(c) for k, c in cfgs.items()}})
     write_json(out_json, out)

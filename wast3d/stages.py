@@ -55,17 +55,18 @@ def Out(name: str, help: str, required: bool = True, beside: str | None = None) 
 @dataclass(frozen=True)
 class Stage:
     """A stage: ``command`` (``wast3d <command>``), ``run`` (the function in :mod:`wast3d.pipeline`),
-    ``ports`` (its files), ``config`` (``module:Class`` of the dataclass that checks its parameters, None
-    where they are several blocks, as evaluate's), ``block`` (their place in the workflow's config),
-    ``progress`` (it takes ``--no-progress``)."""
+    ``ports`` (its files), ``config`` (``module:Class`` of the dataclass that checks its parameters, or
+    one per block where they are several, as evaluate's), ``block`` (their place in the workflow's
+    config), ``progress`` (it takes ``--no-progress``), ``passthrough`` (keys outside the dataclass)."""
 
     command: str
     help: str
     run: str
     ports: tuple[Port, ...]
-    config: str | None = None
+    config: str | dict[str, str] | None = None  # a dict: a stage with several blocks, by name
     block: str | None = None  # where its parameters sit in the workflow's config (``*``: any name)
     progress: bool = False
+    passthrough: tuple[str, ...] = ()  # parameter keys the pipeline function takes itself, not the dataclass
 
     def __post_init__(self):
         names = [p.name for p in self.ports]
@@ -146,7 +147,8 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
         Out("ply", "the trained scene (PLY)"),
         Out("csv", "training log, one row per logged step (CSV)"),
         Out("json", "held-out evaluation: PSNR, SSIM, time, Gaussians (JSON)"),
-    ), "wast3d.pretrain:PretrainConfig", "scenes.*.pretrain", progress=True),
+    ), "wast3d.pretrain:PretrainConfig", "scenes.*.pretrain", progress=True,
+        passthrough=("holdout_every", "background", "max_views")),
     Stage("surface", "stage 2: sample the content's surface (or pass it through when disabled)", "run_surface", (
         In("scene", "trained content scene (PLY)"),
         Out("ply", "surface samples with colour and normal (PLY)"),
@@ -220,8 +222,51 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
         In("content_render", "the unstylized content's render folder, with the result's cameras"),
         In("stylize_npz", "the result's clusters (NPZ, stage 5): element metrics per copy", required=False),
         Out("json", "every metric (JSON)"),
-    )),
+    ), {"metrics": "wast3d.metrics:MetricsConfig", "texture": "wast3d.image_metrics:TextureConfig",
+        "crops": "wast3d.clip_eval:CropConfig", "clip": "wast3d.clip_eval:ClipConfig",
+        "elements": "wast3d.elements:ElementConfig"}, "evaluation"),
 )}
+
+
+def config_class(spec: str):
+    """The dataclass named by ``module:Class`` (imported on demand: the stages' modules import torch)."""
+    import importlib
+
+    module, name = spec.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def resolved_params(command: str, params: dict | None) -> dict:
+    """The parameters stage ``command`` runs with: ``params`` with every default of its config
+    dataclass filled in (checked by it: an unknown key or a bad value is a ValueError naming the stage).
+    The rules pass these, so that a changed default changes a stage's parameters and Snakemake re-runs
+    it (and what depends on it) instead of keeping a result made under the old default."""
+    import dataclasses
+
+    st = STAGES[command]
+    params = dict(params or {})
+    if st.config is None:
+        return params
+    specs = st.config if isinstance(st.config, dict) else {None: st.config}
+    if isinstance(st.config, dict):
+        unknown = sorted(set(params) - set(specs))
+        if unknown:
+            raise ValueError(f"{command}: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(specs)})")
+    out = {k: params.pop(k) for k in st.passthrough if k in params}
+    for key, spec in specs.items():
+        block = params if key is None else dict(params.get(key) or {})
+        cls = config_class(spec)
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(block) - names)
+        if unknown:
+            where = command if key is None else f"{command}.{key}"
+            raise ValueError(f"{where}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+        full = dataclasses.asdict(cls(**block))
+        if key is None:
+            out.update(full)
+        else:
+            out[key] = full
+    return out
 
 
 

@@ -157,6 +157,15 @@ def stage_json(params):
     return json.dumps(params, separators=(",", ":"), sort_keys=True).replace("'", "'\\''")
 
 
+def stage_params(command, block):
+    """:func:`stage_json` of the parameters stage ``command`` runs with: its config block with every
+    default of its dataclass filled in (wast3d/stages.py: resolved_params), so that a changed default
+    re-runs the stage like a changed key does, and a bad block stops the workflow when it is built."""
+    if _RESOLVE_DEFAULTS:
+        return stage_json(_DECLARATIONS.resolved_params(command, block))
+    return stage_json(block)
+
+
 def _load_stages():
     """The stage declarations that go with these rules, read by path (whatever else is installed): the
     checkout's wast3d/stages.py, or, in a wheel (the workflow is the data package wast3d/_workflow), the
@@ -176,6 +185,16 @@ def _load_stages():
 
 _DECLARATIONS = _load_stages()
 STAGES = _DECLARATIONS.STAGES
+if os.path.isdir(os.path.join(workflow.basedir, "wast3d")):  # a checkout: its own package, not another install's
+    sys.path.insert(0, workflow.basedir)
+try:  # the stages' dataclasses, for their defaults (they import torch)
+    import wast3d.stylize  # noqa: F401
+
+    _RESOLVE_DEFAULTS = True
+except ImportError as _e:
+    _RESOLVE_DEFAULTS = False
+    logger.warning(f"wast3d is not importable here ({_e}): the rules pass the config blocks as written, so a "
+                   "changed default of a stage will not re-run it")
 
 
 def results(name, **wildcards):

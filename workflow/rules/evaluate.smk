@@ -12,7 +12,7 @@ rule render_method:
         folder=directory(results("render_pair")),
     params:
         exe=WAST3D,
-        cfg=stage_json(EVALUATION.get("render", {})),
+        cfg=stage_params("render", EVALUATION.get("render", {})),
         args=stage_args("render"),
     conda:
         "../envs/wast3d.yaml"
@@ -31,7 +31,7 @@ rule render_scene:
         folder=directory(results("render_scene")),
     params:
         exe=WAST3D,
-        cfg=stage_json(EVALUATION.get("render", {})),
+        cfg=stage_params("render", EVALUATION.get("render", {})),
         args=stage_args("render", reference=lambda w: results("scene", scene=w.scene)),  # its own cameras
     conda:
         "../envs/wast3d.yaml"
@@ -52,7 +52,7 @@ rule texture_reference:
         folder=directory(results("texture_reference")),
     params:
         exe=WAST3D,
-        cfg=stage_json(EVALUATION.get("render", {})),
+        cfg=stage_params("texture-reference", EVALUATION.get("render", {})),
         args=stage_args("texture-reference"),
     conda:
         "../envs/wast3d.yaml"
@@ -73,7 +73,7 @@ rule colour_transfer:
         json=beside("final", ".json", method="colour_ot"),
     params:
         exe=WAST3D,
-        cfg=stage_json(EVALUATION.get("colour_transfer", {})),
+        cfg=stage_params("colour-transfer", EVALUATION.get("colour_transfer", {})),
         args=stage_args("colour-transfer"),
     conda:
         "../envs/wast3d.yaml"
@@ -100,7 +100,7 @@ rule evaluate:
         json=results("eval"),
     params:
         exe=WAST3D,
-        cfg=stage_json({k: EVALUATION[k] for k in ("metrics", "texture", "crops", "clip", "elements") if k in EVALUATION}),
+        cfg=stage_params("evaluate", {k: EVALUATION[k] for k in STAGES["evaluate"].config if k in EVALUATION}),
         args=stage_args("evaluate", ignore=("clip",)),
     conda:
         "../envs/wast3d.yaml"

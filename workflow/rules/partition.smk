@@ -11,7 +11,7 @@ rule surface:
         scene=constraint(scenes_needing_surface()),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(SCENES[w.scene].get("surface", {})),
+        cfg=lambda w: stage_params("surface", SCENES[w.scene].get("surface", {})),
         args=stage_args("surface"),
     conda:
         "../envs/wast3d.yaml"
@@ -34,7 +34,7 @@ rule style_clean:
         scene=constraint([s for s in SCENES if needs_style_clean(s)]),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(SCENES[w.scene].get("style_clean", {})),
+        cfg=lambda w: stage_params("style-clean", SCENES[w.scene].get("style_clean", {})),
         args=stage_args("style-clean"),
     conda:
         "../envs/wast3d.yaml"
@@ -56,7 +56,7 @@ rule cluster:
                    caption="../report/clusters.rst", category="Partition"),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(PARTITIONS[w.partition].get("cluster", {})),
+        cfg=lambda w: stage_params("cluster", PARTITIONS[w.partition].get("cluster", {})),
         args=stage_args("cluster"),
     conda:
         "../envs/wast3d.yaml"
@@ -80,7 +80,7 @@ rule register:
                    caption="../report/registration.rst", category="Partition"),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(PARTITIONS[w.partition].get("register", {})),
+        cfg=lambda w: stage_params("register", PARTITIONS[w.partition].get("register", {})),
         args=stage_args("register"),
     conda:
         "../envs/wast3d.yaml"
@@ -103,7 +103,7 @@ rule select:
         json=beside("selection", ".json"),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(PARTITIONS[w.partition].get("select", {})),
+        cfg=lambda w: stage_params("select", PARTITIONS[w.partition].get("select", {})),
         args=stage_args("select"),
     conda:
         "../envs/wast3d.yaml"

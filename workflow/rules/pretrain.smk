@@ -14,7 +14,7 @@ rule pretrain:
         exe=WAST3D,
         data=pretrain_data,  # parameters (tracked: a new folder re-runs) as well as the command's files
         ckpt=pretrain_checkpoint,
-        cfg=lambda w: stage_json(pretrain_params(w.scene)),
+        cfg=lambda w: stage_params("pretrain", pretrain_params(w.scene)),
         args=stage_args("pretrain", ignore=("transforms",), data=pretrain_data, checkpoint=pretrain_checkpoint),
     threads: HEAVY_THREADS
     resources:

@@ -17,7 +17,7 @@ rule sinkhorn:
                    caption="../report/losses.rst", category="Results", subcategory="{experiment}"),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("stylize", {})),
+        cfg=lambda w: stage_params("stylize", EXPERIMENTS[w.experiment].get("stylize", {})),
         args=stage_args("stylize"),
     threads: HEAVY_THREADS
     resources:
@@ -42,7 +42,7 @@ rule rescale:
         json=beside("final", ".json"),
     params:
         exe=WAST3D,
-        cfg=lambda w: stage_json(EXPERIMENTS[w.experiment].get("rescale", {})),
+        cfg=lambda w: stage_params("rescale", EXPERIMENTS[w.experiment].get("rescale", {})),
         args=stage_args("rescale"),
     conda:
         "../envs/wast3d.yaml"

@@ -26,15 +26,13 @@ from wast3d.stages import STAGES  # noqa: E402 - the checkout's own declarations
 
 # schema block (dotted path, $defs resolved) -> the dataclass whose defaults apply: each stage's block
 # from its declaration (wast3d/stages.py), and the blocks that are parts of one
-BLOCKS = {s.block: tuple(s.config.split(":")) for s in STAGES.values() if s.block and s.config}
-BLOCKS.update({
-    "experiments.*.stylize.sinkhorn": ("wast3d.stylize", "StylizeConfig.sinkhorn"),
-    "evaluation.crops": ("wast3d.clip_eval", "CropConfig"),
-    "evaluation.clip": ("wast3d.clip_eval", "ClipConfig"),
-    "evaluation.elements": ("wast3d.elements", "ElementConfig"),
-    "evaluation.metrics": ("wast3d.metrics", "MetricsConfig"),
-    "evaluation.texture": ("wast3d.image_metrics", "TextureConfig"),
-})
+BLOCKS = {}
+for _s in STAGES.values():
+    if _s.block and isinstance(_s.config, dict):  # a stage of several blocks (evaluate)
+        BLOCKS.update({f"{_s.block}.{k}": tuple(spec.split(":")) for k, spec in _s.config.items()})
+    elif _s.block and _s.config:
+        BLOCKS[_s.block] = tuple(_s.config.split(":"))
+BLOCKS["experiments.*.stylize.sinkhorn"] = ("wast3d.stylize", "StylizeConfig.sinkhorn")
 # dataclass fields deliberately not configurable from the workflow (with the reason)
 NOT_CONFIGURABLE = {("RenderConfig", "background"): "renders are on white; the metrics assume it"}
 
@@ -200,7 +198,10 @@ def stages_page() -> str:
     for st in STAGES.values():
         parts.append(f"## `wast3d {st.command}`\n")
         parts.append(st.help[0].upper() + st.help[1:] + ".\n")
-        where = f"`{st.block}` ({st.config.split(':')[1]})" if st.block else "the `evaluation` blocks"
+        if isinstance(st.config, dict):
+            where = ", ".join(f"`{st.block}.{k}` ({spec.split(':')[1]})" for k, spec in st.config.items())
+        else:
+            where = f"`{st.block}` ({st.config.split(':')[1]})"
         parts.append(f"Runs `pipeline.{st.run}`; parameters: {where}"
                      + ("; `--no-progress` hides the progress bar." if st.progress else ".") + "\n")
         rows = ["| option | file | what |", "| --- | --- | --- |"]
