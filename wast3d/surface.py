@@ -60,10 +60,9 @@ distance) from the median colour of their ``colour_k`` nearest kept neighbours; 
 a few percent of magenta, blue or green Gaussians inside brown and grey pebbles, mostly seen through
 gaps, which the stylization exposes as specks. Dropping them moves the relief (positions go), so by
 default they are *recoloured* instead (``recolour`` 0.3): a kept Gaussian farther than 0.3 from its
-neighbours' median colour takes that median, every position and label stays. On the four trained demo
-styles 8-17 % of the Gaussians are recoloured, and 78-95 % of those end closer to the colour of the
-scene they were trained from. A style whose small colour features are real (flowers in grass, flecks
-in granite) keeps them with ``recolour: 0``.
+neighbours' median colour takes that median, every position and label stays (the figures:
+docs/measurements.md, session 19). A style whose small colour features are real (flowers in grass,
+flecks in granite) keeps them with ``recolour: 0``.
 """
 
 from __future__ import annotations
