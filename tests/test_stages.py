@@ -124,3 +124,46 @@ def test_rules_pass_every_default_so_a_changed_default_reruns_the_stage():
         resolved_params("evaluate", {"metric": {}})
     with pytest.raises(ValueError, match="stylize.features"):  # the dataclass's own checks run too
         resolved_params("stylize", {"features": "bogus"})
+
+
+def test_an_option_is_declared_once_and_reaches_the_schema_and_its_checks():
+    """option(): the field's help and allowed values give its schema node (type from the annotation) and
+    its construction check; the workflow's schema is exactly what config_docs makes from them."""
+    import importlib.util
+    from dataclasses import dataclass
+
+    import yaml
+
+    from wast3d.options import checked, json_type, option, schema_properties, undocumented
+
+    @dataclass
+    @checked("toy")
+    class Toy:
+        n: int = option(3, "how many", minimum=1)
+        rate: float | None = option(None, "a rate (null: off)", exclusiveMinimum=0, maximum=1)
+        mode: str = option("a", "which", enum=("a", "b"))
+        hidden: bool = True
+
+    assert schema_properties(Toy) == {
+        "n": {"type": "integer", "minimum": 1, "description": "how many"},
+        "rate": {"type": ["number", "null"], "exclusiveMinimum": 0, "maximum": 1, "description": "a rate (null: off)"},
+        "mode": {"enum": ["a", "b"], "description": "which"}}
+    assert undocumented(Toy) == ["hidden"]
+    Toy(n=1, rate=1.0, mode="b")
+    for bad, msg in (({"n": 0}, "toy.n must be >= 1, got 0"), ({"rate": 0.0}, "toy.rate must be > 0"),
+                     ({"rate": float("nan")}, "toy.rate must be > 0"), ({"mode": "c"}, "toy.mode must be one of a, b")):
+        with pytest.raises(ValueError, match=msg):
+            Toy(**bad)
+    with pytest.raises(ValueError, match="no JSON type"):
+        json_type("dict[str, int]")
+    with pytest.raises(ValueError, match="help"):
+        option(1)
+    spec = importlib.util.spec_from_file_location("config_docs", ROOT / "workflow" / "scripts" / "config_docs.py")
+    cd = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cd)
+    assert cd.SCHEMA.read_text() == cd.schema_text(), "the schema is stale: python workflow/scripts/config_docs.py"
+    schema = yaml.safe_load(cd.SCHEMA.read_text())
+    cluster = schema["properties"]["partitions"]["additionalProperties"]["properties"]["cluster"]["properties"]
+    from wast3d.clustering import ClusterConfig
+
+    assert cluster == schema_properties(ClusterConfig)

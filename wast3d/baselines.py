@@ -21,15 +21,17 @@ from dataclasses import dataclass, replace
 import torch
 
 from .gaussians import GaussianScene, rgb_to_sh_dc
+from .options import checked, option
 
 
 @dataclass
+@checked("colour_transfer")
 class ColourTransferConfig:
-    blur: float = 0.02  # in RGB units ([0, 1]); eps = blur^2
-    scaling: float = 0.5
-    extra_iters: int = 10
-    max_style_points: int = 4096  # a random subset of the style's colours stands for its distribution
-    seed: int = 0
+    blur: float = option(0.02, "blur in RGB units", exclusiveMinimum=0)
+    scaling: float = option(0.5, "eps-scaling ratio", exclusiveMinimum=0, exclusiveMaximum=1)
+    extra_iters: int = option(10, "extra iterations at the final eps", minimum=0)
+    max_style_points: int = option(4096, "random style colours the content is transported to", minimum=1)
+    seed: int = option(0, "seed of that subsample")
 
 
 def colour_map(src: torch.Tensor, dst: torch.Tensor, cfg: ColourTransferConfig) -> torch.Tensor:

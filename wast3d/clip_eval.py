@@ -28,33 +28,34 @@ import torch.nn.functional as F
 
 from .device import resolve_device
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
 @dataclass
+@checked("crops")
 class CropConfig:
-    count: int = 32
-    size: int = 64
-    min_alpha: float = 0.5
-    seed: int = 0
+    count: int = option(32, "crops per render set", minimum=1)
+    size: int = option(64, "crop side in pixels", minimum=4)
+    min_alpha: float = option(0.5, "minimum mean alpha of a crop", minimum=0, maximum=1)
+    seed: int = option(0, "seed of the crop positions")
 
-    def __post_init__(self):
-        if self.count < 1 or self.size < 4 or not 0 <= self.min_alpha <= 1:
-            raise ValueError("crops: need count >= 1, size >= 4, 0 <= min_alpha <= 1")
 
 
 @dataclass
+@checked("clip")
 class ClipConfig:
     """model: an open_clip architecture name (or the name of ``model_config``); checkpoint: local weights
     file (None: CLIP is not computed); model_config: optional JSON file with an open_clip model config
     ({"embed_dim", "vision_cfg", "text_cfg"}), registered under its file stem; device: "auto" | "cpu" |
     "cuda"; batch: crops per forward pass."""
 
-    model: str = "ViT-B-32"
-    checkpoint: str | None = None
-    model_config: str | None = None
-    device: str = "auto"
-    batch: int = 64
+    model: str = option("ViT-B-32", "open_clip architecture")
+    checkpoint: str | None = option(None, "a local weights file (null: CLIP is reported as not computed)")
+    model_config: str | None = option(None, "optional JSON architecture for a model open_clip does not know")
+    device: str = option("auto", "auto: CUDA when available", enum=["auto", "cpu", "cuda"])
+    batch: int = option(64, "crops per forward pass", minimum=1)
 
 
 class ClipUnavailable(RuntimeError):

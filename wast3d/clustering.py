@@ -26,20 +26,24 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
 @dataclass
+@checked("cluster")
 class ClusterConfig:
-    n_clusters: int = 0  # 0: derive from target_cluster_size
-    target_cluster_size: int = 2500
-    max_clusters: int = 400
-    colour_weight: float = 0.2
-    flatness: float = 0.5  # split clusters whose mean outward normal is shorter (0: off, the paper)
-    min_split: int = 100  # a split never makes a cluster smaller than this
-    min_size: int = 4
-    seed: int = 0
-    minibatch_above: int = 20_000_000
+    n_clusters: int = option(0, "number of clusters (0: points / target_cluster_size)", minimum=0)
+    target_cluster_size: int = option(2500, "points per cluster when n_clusters is 0", minimum=1)
+    max_clusters: int = option(400, "cap on the derived number of clusters (the paper: 400)", minimum=1)
+    colour_weight: float = option(0.2, "weight of RGB against positions normalized to the unit ball", minimum=0)
+    flatness: float = option(0.5, "split clusters whose mean outward unit normal is shorter than this, in two by their "
+                                  "normals, until flat (0: off, the paper)", minimum=0, maximum=1)
+    min_split: int = option(100, "a split never makes a cluster smaller than this many points", minimum=1)
+    min_size: int = option(4, "smaller clusters are merged into their nearest neighbour", minimum=1)
+    seed: int = option(0, "k-means seed")
+    minibatch_above: int = option(20_000_000, "mini-batch k-means above this many points", minimum=1)
 
 
 def n_clusters_for(n_points: int, cfg: ClusterConfig) -> int:

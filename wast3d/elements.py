@@ -43,16 +43,18 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .options import checked, option
+
 
 @dataclass
+@checked("elements")
 class ElementConfig:
-    tol: float = 0.25  # element_intact: residual after the copy's best similarity, in copy radii
-    min_size: int = 4  # element_intact: copies with fewer Gaussians are left out
-    min_alpha: float = 0.5  # element_share: foreground pixels
+    tol: float = option(0.25, "element_intact: a Gaussian's residual after its element copy's best similarity fit (in "
+                              "copy radii) that still counts as intact", exclusiveMinimum=0)
+    min_size: int = option(4, "element_intact: element copies with fewer Gaussians are left out", minimum=2)
+    min_alpha: float = option(0.5, "element_share: pixels above this alpha are foreground",
+                                   exclusiveMinimum=0, exclusiveMaximum=1)
 
-    def __post_init__(self):
-        if not 0 < self.tol or self.min_size < 2 or not 0 < self.min_alpha < 1:
-            raise ValueError("elements: need tol > 0, min_size >= 2, 0 < min_alpha < 1")
 
 
 def label_colours(element: torch.Tensor, dtype=torch.float32) -> torch.Tensor:

@@ -41,26 +41,26 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .options import checked, option
+
 
 @dataclass
+@checked("texture")
 class TextureConfig:
     """levels: band-pass levels; patch: window side (px of its level); windows: descriptors per level and
     side; directions: random projections; min_alpha: foreground threshold of a window (and its margin);
     min_windows: distinct interior windows each side needs at a level for the level to count."""
 
-    levels: int = 2
-    patch: int = 5
-    windows: int = 2048
-    directions: int = 128
-    min_alpha: float = 0.99
-    min_windows: int = 128  # distinct interior windows a level needs on both sides to be used
-    seed: int = 0
+    levels: int = option(2, "band-pass pyramid levels", minimum=1)
+    patch: int = option(5, "window side in pixels of its level", minimum=1)
+    windows: int = option(2048, "windows per level and side", minimum=1)
+    directions: int = option(128, "random projections of the sliced distance", minimum=1)
+    min_alpha: float = option(0.99, "a window (and a 2-pixel margin) must have at least this alpha: silhouettes are "
+                                    "left out", exclusiveMinimum=0, maximum=1)
+    min_windows: int = option(128, "distinct interior windows a level needs in both the result and the style reference "
+                                   "to count (fewer: the level is left out, and the status says so)", minimum=1)
+    seed: int = option(0, "seed of windows and directions")
 
-    def __post_init__(self):
-        if self.levels < 1 or self.patch < 1 or self.windows < 1 or self.directions < 1 or self.min_windows < 1:
-            raise ValueError("texture: need levels, patch, windows, directions, min_windows >= 1")
-        if not 0.0 < self.min_alpha <= 1.0:
-            raise ValueError(f"texture: min_alpha must be in (0, 1], got {self.min_alpha}")
 
 
 MARGIN = 2  # pixels of a level around a window that must be foreground too (the upsampling's reach)

@@ -57,33 +57,33 @@ import torch
 
 from .gaussians import GaussianScene, anisotropy, shortest_axis
 from .geometry import knn, knn_mean_dist, local_normals
+from .options import checked, option
 
 
 @dataclass
+@checked("metrics")
 class MetricsConfig:
-    patches: int = 128
-    candidates: int = 512
-    patch_size: int = 32
-    patch_stride: int = 4
-    rotations: int = 8
-    normal_k: int = 16
-    colour_points: int = 4096
-    blur: float = 0.05
-    relief_scales: tuple = (8, 16, 32)
-    relief_centres: int = 8192
-    coarse_scale: float = 0.0  # coarse Chamfer's L as a fraction of the content's diameter; 0: the style's element length
-    coarse_support: int = 20000
-    seed: int = 0
+    patches: int = option(128, "result patches of the patch metrics", minimum=1)
+    candidates: int = option(512, "style patches each result patch is matched against", minimum=1)
+    patch_size: int = option(32, "points per patch", minimum=4)
+    patch_stride: int = option(4, "a patch takes every stride-th of its patch_size * stride nearest means", minimum=1)
+    rotations: int = option(8, "in-plane rotations tried per patch match", minimum=1)
+    normal_k: int = option(16, "neighbours of the local normal (tilt_w1_deg)", minimum=3)
+    colour_points: int = option(4096, "Gaussians per side of colour_sinkhorn", minimum=1)
+    blur: float = option(0.05, "blur of the patch and colour Sinkhorn divergences", exclusiveMinimum=0)
+    relief_scales: tuple = option((8, 16, 32), "neighbourhood sizes (Gaussians) of relief_w1",
+                                               items={"type": "integer", "minimum": 4}, minItems=1)
+    relief_centres: int = option(8192, "random centres of relief_w1 (its seed-to-seed spread falls as 1/sqrt)",
+                                       minimum=1)
+    coarse_scale: float = option(0.0, "coarse_chamfer's smoothing length as a fraction of the content's diameter (0: "
+                                      "the style's element length on the content)", minimum=0)
+    coarse_support: int = option(20000, "points of each cloud the coarse Chamfer smooths over", minimum=16)
+    seed: int = option(0, "seed of every sampled metric")
 
     def __post_init__(self):
         self.relief_scales = tuple(int(k) for k in self.relief_scales)
-        if not self.relief_scales or min(self.relief_scales) < 4 or self.relief_centres < 1:
-            raise ValueError("metrics: need relief_scales (each >= 4) and relief_centres >= 1")
-        if min(self.patches, self.candidates, self.rotations, self.colour_points) < 1 or self.patch_size < 4 or self.patch_stride < 1 \
-                or self.normal_k < 3:
-            raise ValueError("metrics: need patches, candidates, rotations, colour_points >= 1, patch_size >= 4, normal_k >= 3")
-        if self.coarse_scale < 0 or self.coarse_support < 16:
-            raise ValueError("metrics: need coarse_scale >= 0 and coarse_support >= 16")
+        if not self.relief_scales or min(self.relief_scales) < 4:
+            raise ValueError(f"metrics.relief_scales: need at least one, each >= 4, got {list(self.relief_scales)}")
 
 
 def chamfer(x: torch.Tensor, y: torch.Tensor) -> float:

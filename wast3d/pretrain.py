@@ -56,43 +56,51 @@ from .datasets import Dataset
 from .gaussians import GaussianScene, num_sh_rest
 from .rasterizer import rasterize
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
 @dataclass
+@checked("pretrain")
 class PretrainConfig:
-    iterations: int = 5000
-    sh_degree: int = 0
-    sh_every: int = 1000
-    ssim_lambda: float = 0.2
-    lr_means: float = 1.6e-4
-    lr_means_final_factor: float = 0.01
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    init_points: int = 20000
-    init_extent: float = 0.0
-    init_opacity: float = 0.1
-    max_gaussians: int = 200_000
-    refine_start: int = 300
-    refine_stop: int = 0  # 0: iterations * 3/4
-    refine_every: int = 100
-    reset_every: int = 3000
-    grow_grad2d: float = 0.0002
-    prune_opa: float = 0.005
-    regularize: bool = False
-    aniso_weight: float = 0.1
-    aniso_ratio: float = 3.0
-    unif_weight: float = 100.0  # eq. 2 is mean ||s - s_hat||^2 in scene units: at 0.1 it moved nothing
-    opacity_weight: float = 0.1  # binary opacity (with regularize; from refine_stop on); 0: off
-    target_scale: float = 0.0  # eq. 2's s_hat; 0: from target_pixels
-    target_pixels: float = 0.7  # s_hat in pixel footprints of the training views; 0 (and target_scale 0): the median scale
-    unif_cap: bool = False  # eq. 2 one-sided: only scales above s_hat are pulled down
-    checkpoint_every: int = 1000
-    eval_every: int = 0  # 0: only at the end
-    seed: int = 0
+    iterations: int = option(5000, "optimization steps", minimum=0)
+    sh_degree: int = option(0, "final spherical-harmonics degree", minimum=0)
+    sh_every: int = option(1000, "raise the SH degree every this many steps", minimum=0)
+    ssim_lambda: float = option(0.2, "weight of D-SSIM in the photometric loss", minimum=0)
+    lr_means: float = option(1.6e-4, "position learning rate (times the scene extent)", minimum=0)
+    lr_means_final_factor: float = option(0.01, "the position learning rate decays exponentially to this factor",
+                                                minimum=0)
+    lr_scales: float = option(5e-3, "Adam learning rate of the log-scales", minimum=0)
+    lr_quats: float = option(1e-3, "Adam learning rate of the rotations", minimum=0)
+    lr_opacities: float = option(5e-2, "Adam learning rate of the opacity logits", minimum=0)
+    lr_sh0: float = option(2.5e-3, "Adam learning rate of the DC colour", minimum=0)
+    lr_shN: float = option(2.5e-3 / 20, "Adam learning rate of the higher SH coefficients", minimum=0)
+    init_points: int = option(20000, "random initial Gaussians (Blender data has no SfM points)", minimum=0)
+    init_extent: float = option(0.0, "half-size of the initial cube (0: from the cameras)", minimum=0)
+    init_opacity: float = option(0.1, "initial opacity", minimum=0)
+    max_gaussians: int = option(200_000, "cap of the densification", minimum=0)
+    refine_start: int = option(300, "first densification step", minimum=0)
+    refine_stop: int = option(0, "last densification step (0: 3/4 of iterations)", minimum=0)
+    refine_every: int = option(100, "densification period", minimum=0)
+    reset_every: int = option(3000, "opacity reset period", minimum=0)
+    grow_grad2d: float = option(0.0002, "screen-space gradient above which a Gaussian is split or cloned", minimum=0)
+    prune_opa: float = option(0.005, "prune Gaussians below this opacity", minimum=0)
+    regularize: bool = option(False, "eq. 1-2 regularizers (unset: on for scenes used as styles, off otherwise)")
+    aniso_weight: float = option(0.1, "weight of eq. 1 (anisotropy)", minimum=0)
+    aniso_ratio: float = option(3.0, "r of eq. 1: the tolerated max/min scale ratio", minimum=0)
+    unif_weight: float = option(100.0, "weight of eq. 2 (uniform scale)", minimum=0)
+    opacity_weight: float = option(0.1, "ours, with the regularizers: weight of the binary-opacity term mean o (1 - o) "
+                                        "from the end of densification on (opaque surface Gaussians, no translucent "
+                                        "layers); 0: off", minimum=0)
+    target_scale: float = option(0.0, "s_hat of eq. 2 (0: from target_pixels)", minimum=0)
+    target_pixels: float = option(0.7, "s_hat of eq. 2 in pixel footprints of the training views at the point they look"
+                                       " at (0, with target_scale 0: the detached median scale)", minimum=0)
+    unif_cap: bool = option(False, "eq. 2 one-sided: only scales above s_hat are pulled down (thin axes left to the "
+                                   "images)")
+    checkpoint_every: int = option(1000, "checkpoint period (resume is bit-identical)", minimum=0)
+    eval_every: int = option(0, "held-out evaluation period (0: only at the end)", minimum=0)
+    seed: int = option(0, "seed")
 
 
 # ---- losses ------------------------------------------------------------------------------------

@@ -53,26 +53,37 @@ import torch
 from .gaussians import quat_to_rotmat
 from .geometry import KnnIndex, frame_from_normal, kabsch, knn, local_normals
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class RegistrationConfig:
-    landings: int = 2  # landing points per cluster: the style's centre, then random inner points
-    yaws: int = 6  # rotations about the aligned normal, evenly spaced
-    orient: bool = True  # content normals outward onto the style's up; false: both signs (x2 starts)
-    iterations: int = 40
-    refine_iterations: int = 80
-    subsample: int = 128
-    scale: float = 0.0  # s0 explicitly; 0: from element_scale
-    element_scale: float = 0.062  # one style relief length on the content, as a fraction of its diameter; 0: density-matched s0
-    scale_range: float = 1.5
-    style_up: str = "z"  # the side the style's elements stand on: a world axis (z, -z, y, -y, x, -x) or auto (skew)
-    seed: int = 0
+UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+            "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
 
-    def __post_init__(self):
-        if self.style_up != "auto" and self.style_up not in UP_AXES:
-            raise ValueError(f"register.style_up must be 'auto' or one of {', '.join(UP_AXES)}, got '{self.style_up}'")
+
+@dataclass
+@checked("register")
+class RegistrationConfig:
+    landings: int = option(2, "random start points in the style besides its centre", minimum=1)
+    yaws: int = option(6, "rotations about the normal tried per start", minimum=1)
+    orient: bool = option(True, "each cluster's outward normal onto the style's up (the elements' tops outside); false:"
+                                " both signs started, the residual picks")
+    iterations: int = option(40, "ICP iterations per start", minimum=0)
+    refine_iterations: int = option(80, "ICP iterations of the best start on all points", minimum=0)
+    subsample: int = option(128, "points per cluster during the multi-start phase", minimum=1)
+    scale: float = option(0.0, "content-to-style scale s0 explicitly (0: from element_scale)", minimum=0)
+    element_scale: float = option(0.062, "how large the style's elements come out: one relief length of the style "
+                                         "(about an element's width) covers this fraction of the content's diameter; 0:"
+                                         " s0 = style spacing / content spacing (density-matched, depends on the "
+                                         "Gaussian counts)", minimum=0)
+    scale_range: float = option(1.5, "the scale is bounded to [s0 / range, s0 * range]", minimum=1)
+    style_up: str = option("z", "the side the style's elements stand on (outward content normals are mapped onto it): a"
+                                " world axis, as the views of the style were taken (export_views, style_clean and the "
+                                "texture reference look from +z), or auto (the skew of the heights; fooled by a trained"
+                                " patch's unseen underside)", enum=[*UP_AXES, "auto"])
+    seed: int = option(0, "seed of the starts and subsamples")
+
 
 
 @dataclass
@@ -125,8 +136,6 @@ def mean_spacing(points: torch.Tensor, max_points: int = 200_000, seed: int = 0)
     return max(float(d.mean()), 1e-12)
 
 
-UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
-            "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
 
 
 def patch_frame(style: torch.Tensor, up="auto") -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,8 @@ from .geometry import robust_bounds
 from .io_utils import atomic_path, write_json
 from .rasterizer import rasterize
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
@@ -91,6 +93,7 @@ def export_blender(scene: GaussianScene, root: str | Path, n_views: int = 48, si
 
 
 @dataclass
+@checked("render")
 class RenderConfig:
     """What ``wast3d render`` produces (all cameras fitted to the *reference* scene, so that every
     method rendered against the same content shows the same views and the same close-up fragment).
@@ -102,22 +105,21 @@ class RenderConfig:
     (finite differences of the expected-depth map); fps: GIF frame rate.
     """
 
-    frames: int = 24
-    size: int = 256
-    elevation: float = 30.0
-    fov: float = 40.0
-    key_views: int = 4
-    closeup_zoom: float = 3.0
-    closeup_size: int = 0
-    normals: str = "axis"
-    fps: float = 8.0
+    frames: int = option(24, "turntable frames", minimum=1)
+    size: int = option(256, "frame side in pixels", minimum=8)
+    elevation: float = option(30.0, "orbit elevation, degrees")
+    fov: float = option(40.0, "field of view, degrees", exclusiveMinimum=0, exclusiveMaximum=180)
+    key_views: int = option(4, "evenly spaced frames that also get depth and normal maps", minimum=1)
+    closeup_zoom: float = option(3.0, "magnification of the close-up", minimum=1)
+    closeup_size: int = option(0, "close-up side in pixels (0: size)", minimum=0)
+    normals: str = option("axis", "axis: each Gaussian's shortest axis, alpha-blended; depth: from the depth map",
+                                  enum=["axis", "depth"])
+    fps: float = option(8.0, "GIF frame rate", exclusiveMinimum=0)
     background: tuple = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
-        if self.normals not in ("axis", "depth"):
-            raise ValueError(f"render.normals must be 'axis' or 'depth', got '{self.normals}'")
-        if self.frames < 1 or self.size < 8 or not 1 <= self.key_views <= self.frames or self.closeup_zoom < 1:
-            raise ValueError("render: need frames >= 1, size >= 8, 1 <= key_views <= frames, closeup_zoom >= 1")
+        if self.key_views > self.frames:
+            raise ValueError(f"render: need key_views <= frames, got {self.key_views} > {self.frames}")
         if self.closeup_size != 0 and self.closeup_size < 8:
             raise ValueError(f"render.closeup_size must be 0 (= size) or >= 8, got {self.closeup_size}")
         self.background = tuple(self.background)

@@ -18,13 +18,15 @@ import torch
 
 from .gaussians import GaussianScene
 from .geometry import knn_mean_dist
+from .options import checked, option
 
 
 @dataclass
+@checked("rescale")
 class RescaleConfig:
-    enabled: bool = True
-    k: int = 8
-    bound: float = 2.0
+    enabled: bool = option(True, "false: keep the style Gaussians' mapped scales")
+    k: int = option(8, "neighbours (same cluster) whose mean distance sets the scale factor", minimum=1)
+    bound: float = option(2.0, "the factor is clamped to [1/bound, bound]", minimum=1)
 
 
 def readjust_scales(after: GaussianScene, before_means: torch.Tensor, labels: torch.Tensor, k: int = 8,

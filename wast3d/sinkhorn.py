@@ -40,32 +40,33 @@ from typing import NamedTuple
 
 import torch
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
 @dataclass
+@checked("sinkhorn")
 class SinkhornConfig:
     """Solver settings. ``blur`` is gamma (a length in normalized units); eps = blur^2."""
 
-    blur: float = 0.05
-    scaling: float = 0.5
-    debias: bool = True
-    extra_iters: int = 0
-    warm_iters: int = 3
-    tol: float = 0.0  # > 0: iterate at the final eps until max |change of a potential| <= tol * eps
-    max_iters: int = 200  # cap on those convergence iterations (per solve)
-    backend: str = "auto"  # "native" | "torch" | "geomloss" (reference) | "auto"
+    blur: float = option(0.05, "gamma, in the unit of blur_units (default: a fraction of each cluster's radius)",
+                               exclusiveMinimum=0)
+    scaling: float = option(0.5, "eps-scaling ratio of a cold solve (geomloss' scaling)",
+                                 exclusiveMinimum=0, exclusiveMaximum=1)
+    debias: bool = option(True, "false: entropic OT without the debiasing terms (eq. 5; the paper's ablation)")
+    extra_iters: int = option(0, "extra iterations at the final eps of a cold solve", minimum=0)
+    warm_iters: int = option(3, "fixed iterations of a warm-started solve (with tol > 0, followed by more until "
+                                "converged)", minimum=0)
+    tol: float = option(0.0, "iterate at the final eps until the potentials change by <= tol * eps (0: fixed iteration "
+                             "counts)", minimum=0)
+    max_iters: int = option(200, "cap on the iterations of a tol-converged solve", minimum=0)
+    backend: str = option("auto", "auto (native C kernel on CPU, torch on CUDA), native, torch or geomloss",
+                                  enum=["auto", "native", "torch", "geomloss"])
 
     def __post_init__(self):
-        if not (self.tol >= 0 and math.isfinite(self.tol)) or self.max_iters < 0 or self.warm_iters < 0 \
-                or self.extra_iters < 0:
-            raise ValueError("sinkhorn: need tol >= 0 (finite), max_iters, warm_iters, extra_iters >= 0")
-        if not (self.blur > 0 and math.isfinite(self.blur)):
-            raise ValueError(f"sinkhorn.blur must be a positive finite number, got {self.blur}")
-        if not 0 < self.scaling < 1:
-            raise ValueError(f"sinkhorn.scaling must be in (0, 1), got {self.scaling}")
-        if self.backend not in ("auto", "native", "torch", "geomloss"):
-            raise ValueError(f"sinkhorn.backend must be auto/native/torch/geomloss, got '{self.backend}'")
+        if not (math.isfinite(self.tol) and math.isfinite(self.blur)):
+            raise ValueError(f"sinkhorn: tol and blur must be finite, got {self.tol}, {self.blur}")
 
 
 @dataclass

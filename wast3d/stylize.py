@@ -59,6 +59,8 @@ from .gaussians import SH_C0, GaussianScene, footprint, luminance
 from .geometry import kabsch, knn
 from .sinkhorn import SinkhornConfig, sinkhorn
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
@@ -75,66 +77,73 @@ class StylizeSinkhornConfig(SinkhornConfig):
     """Eq. 9's solver settings: gamma 30 % of the cluster radius (why not the paper's 0.05:
     docs/method.md, stage 5), potentials converged to 1e-3 eps at every step."""
 
-    blur: float = 0.3
-    tol: float = 1e-3
+    blur: float = option(0.3, "gamma, in the unit of blur_units (default: a fraction of each cluster's radius)",
+                              exclusiveMinimum=0)
+    tol: float = option(1e-3, "iterate at the final eps until the potentials change by <= tol * eps (0: fixed iteration"
+                              " counts)", minimum=0)
 
 
 @dataclass
+@checked("stylize")
 class StylizeConfig:
-    features: str = "xyz+lum"
-    colour_weight: float = 0.5
-    iterations: int = 30
-    lr: float = 0.2
-    lr_colour: float = 0.02
-    optimizer: str = "flow"  # "flow" | "adam" (see stylize_cluster; Adam wants lr ~0.01)
-    loss: str = "sinkhorn"  # "sinkhorn" | "arap"
-    warm_start: bool = True
-    arap_weight: float = 1.0
-    arap_k: int = 8
-    dtype: str = "float32"
-    device: str = "auto"  # "auto": CUDA when available
-    blur_units: str = "cluster"  # "cluster": gamma relative to each cluster's radius; "scene": see above
-    batch: int = 0  # clusters per packed solve (0: all of them in one; 1: one cluster at a time)
-    masses: str = "style-area"  # the style's Gaussians weigh their footprint (footprint_masses), the content's
-    # points one each; "area": both by footprint; "uniform": both one each
-    smooth_k: int = 32  # displacement smoothing: neighbours (in the style's own positions) averaged over
-    smooth_passes: int = 16  # passes of that average per step (0: off); see smooth_displacements
-    smooth_axis: str = "all"  # "all": the whole step is smoothed; "up": only its component along the style's up
-    smooth_radius: float = 0.25  # > 0: a pass averages only over neighbours within this many relief lengths (a reach
-    # in the style's units, whatever its density); 0: over all smooth_k neighbours
-    smooth_with_parts: bool = False  # smoothing also where parts move the style (off: only where the parts are
-    # left out, steep reliefs or parts 0, whose Gaussians would otherwise each move on their own)
-    parts: float = 0.8  # piecewise-rigid flow: the style cut into parts this many relief lengths across, each
-    # moving as one (0: off); see style_parts
-    parts_colour: float = 3.0  # the colour's weight in the parts' k-means (1: a colour step of 1 counts as one part across)
-    parts_motion: str = "rigid"  # each part's step: its mean ("translation") or its best rigid motion ("rigid")
-    parts_max_aspect: float = 0.16  # parts only on a style whose relief aspect (registration.relief) is at most
-    # this: elements about a relief length in every direction (pebbles, boulders), not blades or strands
+    features: str = option("xyz+lum", "what the divergence compares: positions, positions + luminance (the paper), "
+                                      "positions + RGB", enum=FEATURES)
+    colour_weight: float = option(0.5, "weight of the colour coordinates against normalized positions", minimum=0)
+    iterations: int = option(30, "optimization steps (0: registration + selection mapped back unoptimized, a collage)",
+                                 minimum=0)
+    lr: float = option(0.2, "step size: the flow's fraction of the way to the transport target per step, or Adam's "
+                            "learning rate", exclusiveMinimum=0)
+    lr_colour: float = option(0.02, "Adam's learning rate of the luminance offsets", minimum=0)
+    optimizer: str = option("flow", "adam, or the Sinkhorn gradient flow (steps of lr towards the transport target)",
+                                    enum=["adam", "flow"])
+    loss: str = option("sinkhorn", "sinkhorn (eq. 9) or arap (Chamfer + as-rigid-as-possible energy: the paper's "
+                                   "ablation, our reading of eq. 10)", enum=["sinkhorn", "arap"])
+    warm_start: bool = option(True, "start each step's solve from the previous step's potentials")
+    arap_weight: float = option(1.0, "arap: weight of the rigidity energy", minimum=0)
+    arap_k: int = option(8, "arap: neighbours of the rigidity graph", minimum=1)
+    dtype: str = option("float32", "precision of the optimization", enum=["float32", "float64"])
+    device: str = option("auto", "auto: CUDA when available", enum=["auto", "cpu", "cuda"])
+    blur_units: str = option("cluster", "gamma relative to each cluster's radius, or a length in the content scene "
+                                        "normalized to the unit ball", enum=BLUR_UNITS)
+    batch: int = option(0, "clusters per packed Sinkhorn solve (0: all in one; 1: one at a time, the per-pair "
+                           "reference); same result, fewer kernel launches", minimum=0)
+    masses: str = option("style-area", "each Gaussian's mass in the transport: area (opacity times its two largest "
+                                       "scales: both sides are distributions of surface, whatever the Gaussians' "
+                                       "sizes), uniform (one per Gaussian: where a trained scene uses many small "
+                                       "Gaussians, mass piles up and the flow tears elements to even it out) or "
+                                       "style-area (the style's by area, the content's one per point: a trained "
+                                       "capture's large Gaussians behind its visible surface then do not pull the style"
+                                       " in)", enum=MASSES)
+    smooth_k: int = option(32, "displacement smoothing: neighbours (in the style's own positions, same cluster) each "
+                               "step's displacement is averaged over", minimum=1)
+    smooth_passes: int = option(16, "displacement smoothing: passes of that average per step (0: off); elements move as"
+                                    " wholes", minimum=0)
+    smooth_axis: str = option("all", "displacement smoothing acts on the whole step (all) or only on its component "
+                                     "along the style's up (up: elements keep their relief, move freely across the "
+                                     "surface)", enum=SMOOTH_AXES)
+    smooth_radius: float = option(0.25, "displacement smoothing: a pass averages only over the neighbours within this "
+                                        "many style relief lengths (a reach in length, whatever the style's density); "
+                                        "0: over all smooth_k neighbours", minimum=0)
+    smooth_with_parts: bool = option(False, "displacement smoothing also where parts move the style; false: only where "
+                                            "the parts are left out (a steep relief, or parts 0), whose Gaussians would"
+                                            " otherwise each move on their own")
+    parts: float = option(0.8, "piecewise-rigid flow: the style cut into parts this many style relief lengths across "
+                               "(k-means on position and colour), each moving as one, so that elements made of many "
+                               "Gaussians move whole (0: off)", minimum=0)
+    parts_colour: float = option(3.0, "the colour's weight in the parts' k-means (features [xyz / part size, "
+                                      "parts_colour * rgb]): part borders follow colour edges such as a pebble's rim",
+                                      minimum=0)
+    parts_motion: str = option("rigid", "each part's step: the mass-weighted mean of its Gaussians' steps (translation)"
+                                        " or their best rigid motion (rigid: a part also turns to follow a curved "
+                                        "content)", enum=PART_MOTIONS)
+    parts_max_aspect: float = option(0.16, "parts only on a style whose relief aspect (RMS height of its top surface "
+                                           "over its relief length) is at most this: elements about a relief length in "
+                                           "every direction (pebbles, boulders: 0.08-0.11), not blades (0.23-0.27) or a"
+                                           " weave (0.27-0.34), which rigid parts would tear; a large value: parts on "
+                                           "every style", minimum=0)
     sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
 
-    def __post_init__(self):
-        if self.features not in FEATURES:
-            raise ValueError(f"stylize.features must be one of {FEATURES}, got '{self.features}'")
-        if self.loss not in ("sinkhorn", "arap"):
-            raise ValueError(f"stylize.loss must be 'sinkhorn' or 'arap', got '{self.loss}'")
-        if self.optimizer not in ("adam", "flow"):
-            raise ValueError(f"stylize.optimizer must be 'adam' or 'flow', got '{self.optimizer}'")
-        if self.masses not in MASSES:
-            raise ValueError(f"stylize.masses must be one of {MASSES}, got '{self.masses}'")
-        if self.smooth_k < 1 or self.smooth_passes < 0 or not self.smooth_radius >= 0:
-            raise ValueError(f"stylize: need smooth_k >= 1, smooth_passes >= 0 and smooth_radius >= 0 (got "
-                             f"{self.smooth_k}, {self.smooth_passes}, {self.smooth_radius})")
-        if not (self.parts >= 0 and self.parts_colour >= 0 and self.parts_max_aspect >= 0):
-            raise ValueError("stylize: need parts >= 0 (0: off), parts_colour >= 0 and parts_max_aspect >= 0, got "
-                             f"{self.parts}, {self.parts_colour}, {self.parts_max_aspect}")
-        if self.parts_motion not in PART_MOTIONS:
-            raise ValueError(f"stylize.parts_motion must be one of {PART_MOTIONS}, got '{self.parts_motion}'")
-        if self.smooth_axis not in SMOOTH_AXES:
-            raise ValueError(f"stylize.smooth_axis must be one of {SMOOTH_AXES}, got '{self.smooth_axis}'")
-        if self.batch < 0:
-            raise ValueError(f"stylize.batch must be >= 0 (0: every cluster in one solve), got {self.batch}")
-        if self.blur_units not in BLUR_UNITS:
-            raise ValueError(f"stylize.blur_units must be one of {BLUR_UNITS}, got '{self.blur_units}'")
+    def __post_init__(self):  # a sinkhorn block given as a dict becomes its dataclass (the options: @checked)
         if isinstance(self.sinkhorn, dict):
             known = {f.name for f in fields(StylizeSinkhornConfig)}
             unknown = sorted(set(self.sinkhorn) - known)

@@ -76,6 +76,8 @@ import torch
 from .gaussians import GaussianScene, footprint, rgb_to_sh_dc
 from .geometry import knn
 
+from .options import checked, option
+
 log = logging.getLogger(__name__)
 
 
@@ -83,59 +85,68 @@ SURFACE_MODES = ("filter", "footprints", "backproject")
 
 
 @dataclass
+@checked("surface")
 class SurfaceConfig:
-    enabled: bool = True
-    min_opacity: float = 0.05
-    outlier_k: int = 30
-    outlier_quantile: float = 0.95
-    visibility: bool = True
-    views: int = 24
-    resolution: int = 200
-    depth_tolerance: float = 0.02
-    max_points: int = 0  # 0: no resampling
-    density_k: int = 8
-    mode: str = "filter"  # filter: the Gaussians kept; footprints: points drawn over them by area, thinned; backproject: points back-projected from renders, thinned
-    spacing: float = 0.0  # footprints, backproject: voxel size as a fraction of the scene's radius (0: about one point per Gaussian kept)
-    oversample: int = 8  # footprints: points drawn per Gaussian kept, before thinning
-    seed: int = 0
-
-    def __post_init__(self):
-        if self.mode not in SURFACE_MODES:
-            raise ValueError(f"surface.mode must be one of {SURFACE_MODES}, got '{self.mode}'")
-        if self.oversample < 1:
-            raise ValueError(f"surface.oversample must be >= 1, got {self.oversample}")
-        if self.spacing < 0:
-            raise ValueError(f"surface.spacing must be >= 0, got {self.spacing}")
+    enabled: bool = option(True, "false: pass the scene through unchanged")
+    min_opacity: float = option(0.05, "drop Gaussians below this opacity", minimum=0, maximum=1)
+    outlier_k: int = option(30, "outlier rule: distance to the k-th neighbour (0: off)", minimum=0)
+    outlier_quantile: float = option(0.95, "outlier rule: drop Gaussians whose k-th-neighbour distance is above this "
+                                           "quantile", exclusiveMinimum=0, maximum=1)
+    visibility: bool = option(True, "keep only centres within depth_tolerance of the rendered depth in at least one "
+                                    "view (removes interior Gaussians)")
+    views: int = option(24, "orbit views of the visibility test", minimum=1)
+    resolution: int = option(200, "pixels (side) of the visibility renders", minimum=16)
+    depth_tolerance: float = option(0.02, "visibility: distance to the rendered depth, as a fraction of the scene "
+                                          "radius", exclusiveMinimum=0)
+    max_points: int = option(0, "density-uniform resampling down to this many points (0: off)", minimum=0)
+    density_k: int = option(8, "resampling: probability proportional to the cubed distance to this neighbour",
+                               minimum=1)
+    mode: str = option("filter", "filter: the Gaussians kept; footprints: points drawn over the kept Gaussians' "
+                                 "footprints by area and fused on a voxel grid; backproject: the kept Gaussians' orbit "
+                                 "renders back-projected and fused on a voxel grid (points uniform by area)",
+                                 enum=SURFACE_MODES)
+    spacing: float = option(0.0, "footprints, backproject: voxel size as a fraction of the scene's radius (0: about as "
+                                 "many points as Gaussians kept, never finer than their median spacing)", minimum=0)
+    oversample: int = option(8, "footprints: points drawn per Gaussian kept, before the fusion", minimum=1)
+    seed: int = option(0, "seed of the resampling")
 
 
 @dataclass
+@checked("style_clean")
 class StyleCleanConfig:
-    enabled: bool = True
-    min_opacity: float = 0.05
-    core_quantile: float = 0.01  # core box: these quantiles of the opaque Gaussians' positions, per axis
-    core_opacity: float = 0.5  # "opaque" for the core box
-    core_margin: float = 0.05  # the box widened by this fraction of its size on each side
-    max_scale: float = 0.0  # oversized: largest axis above this many times the median one (0: off)
-    outlier_k: int = 30
-    outlier_quantile: float = 0.99
-    visibility: bool = True
-    views: int = 24
-    resolution: int = 200
-    min_seen: float = 0.05  # hidden: less than this fraction of a Gaussian is seen in its best view
-    below_ground: float = 0.5  # below the ground: centre more than this many relief heights under the ground (0: off)
-    colour_outliers: float = 0.0  # colour farther than this (RGB) from the median of its colour_k neighbours (0: off)
-    recolour: float = 0.3  # the same test on the kept Gaussians, which then take that median colour instead of going (0: off)
-    colour_k: int = 16
-    seed: int = 0
+    enabled: bool = option(True, "false: use the style scene as it is")
+    min_opacity: float = option(0.05, "drop Gaussians below this opacity (translucent haze)", minimum=0, maximum=1)
+    core_quantile: float = option(0.01, "patch box: these quantiles (and 1 minus them) of the opaque Gaussians' "
+                                        "positions, per axis", minimum=0, exclusiveMaximum=0.5)
+    core_opacity: float = option(0.5, "patch box: opacity from which a Gaussian counts as opaque", minimum=0, maximum=1)
+    core_margin: float = option(0.05, "patch box: widened by this fraction of its size on each side; outside it, "
+                                      "floaters", minimum=0)
+    max_scale: float = option(0.0, "drop Gaussians whose largest axis is above this many times the median largest axis "
+                                   "(0: off)", minimum=0)
+    outlier_k: int = option(30, "outlier rule: distance to the k-th neighbour (0: off)", minimum=0)
+    outlier_quantile: float = option(0.99, "outlier rule: drop Gaussians whose k-th-neighbour distance is above this "
+                                           "quantile", exclusiveMinimum=0, maximum=1)
+    visibility: bool = option(True, "drop hidden Gaussians: those of which less than min_seen is seen in every view "
+                                    "from above")
+    views: int = option(24, "views (elevations 15-80 degrees) of the visibility test", minimum=1)
+    resolution: int = option(200, "pixels (side) of the visibility renders", minimum=16)
+    min_seen: float = option(0.05, "visibility: the share of a Gaussian (its blending weight over its weight alone and "
+                                   "face-on) its best view must show", minimum=0)
+    below_ground: float = option(0.5, "drop Gaussians whose centre lies more than this many relief heights under the "
+                                      "ground a view from above meets (a trained patch's unseen underside; 0: off)",
+                                      minimum=0)
+    colour_outliers: float = option(0.0, "drop Gaussians whose RGB lies farther than this from the median of their "
+                                         "colour_k nearest neighbours (0: off): specks of odd colour inside the "
+                                         "elements", minimum=0)
+    recolour: float = option(0.3, "the colour-outlier test (this limit) on the kept Gaussians, which take their "
+                                  "neighbours' median colour instead of going: positions, relief and labels stay (0: "
+                                  "off)", minimum=0)
+    colour_k: int = option(16, "neighbours of the colour-outlier test", minimum=1)
+    seed: int = option(0, "seed")
 
     def __post_init__(self):
-        if not 0 <= self.core_quantile < 0.5 or self.core_margin < 0 or not 0 <= self.min_opacity < 1:
-            raise ValueError("style_clean: need 0 <= core_quantile < 0.5, core_margin >= 0, 0 <= min_opacity < 1")
-        if self.min_seen < 0 or self.below_ground < 0:
-            raise ValueError(f"style_clean: need min_seen >= 0 and below_ground >= 0, got {self.min_seen}, {self.below_ground}")
-        if self.colour_outliers < 0 or self.recolour < 0 or self.colour_k < 1:
-            raise ValueError("style_clean: need colour_outliers >= 0, recolour >= 0 and colour_k >= 1, got "
-                             f"{self.colour_outliers}, {self.recolour}, {self.colour_k}")
+        if not self.min_opacity < 1:
+            raise ValueError(f"style_clean.min_opacity must be < 1 (1 would drop every Gaussian), got {self.min_opacity}")
 
 
 CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
