@@ -32,7 +32,7 @@ def parse_value(v: str):
 
 def main(argv=None) -> None:
     from wast3d import pipeline
-    from wast3d.render import comparison_sheet
+    from wast3d.figures import comparison_sheet
     from wast3d.stages import artifact
 
     ap = argparse.ArgumentParser()

@@ -58,7 +58,10 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: 
         from wast3d.rasterizer import bin_tiles, composite_native, project, rasterize
     except ImportError:  # a revision from before the module's rename (rendering.py, session 19)
         from wast3d.rendering import bin_tiles, composite_native, project, rasterize
-    from wast3d.render import fit_orbit
+    try:
+        from wast3d.cameras import fit_orbit
+    except ImportError:  # a revision from before session 19 kept the camera rigs in render.py
+        from wast3d.render import fit_orbit
 
     label = backend
     backend = backend.split("@", 1)[0]  # native@REV: this process imports REV's package (main sets PYTHONPATH)

@@ -266,7 +266,8 @@ def test_colour_transfer_rejects_empty_scenes():
 
 
 def test_closeup_is_a_crop_of_the_zoomed_render():
-    from wast3d.render import closeup_camera, fit_orbit
+    from wast3d.cameras import fit_orbit
+    from wast3d.render import closeup_camera
     from wast3d.rasterizer import rasterize
 
     scene = random_scene(300, seed=2)
@@ -332,7 +333,8 @@ def test_normals_of_a_plane(mode):
 def test_render_turntable_artifacts_and_sheet(tmp_path):
     import imageio.v3 as iio
 
-    from wast3d.render import RenderConfig, comparison_sheet, read_frames, render_turntable
+    from wast3d.figures import comparison_sheet
+    from wast3d.render import RenderConfig, read_frames, render_turntable
 
     scene = make_scene("content", "torus", 800)
     cfg = RenderConfig(frames=6, size=48, key_views=2, closeup_zoom=2)
@@ -355,7 +357,7 @@ def test_render_turntable_artifacts_and_sheet(tmp_path):
     info2 = render_turntable(make_scene("content", "sphere", 500), scene, tmp_path / "b", cfg)
     assert info2["cameras"] == info["cameras"]
     comparison_sheet([("a", tmp_path / "a"), ("b", tmp_path / "b")], tmp_path / "sheet.png")
-    from wast3d.render import turntable_page, write_mp4
+    from wast3d.figures import turntable_page, write_mp4
 
     (tmp_path / "b" / "turntable.mp4").unlink()  # a folder without an MP4 shows its GIF
     turntable_page([("ours <a>", tmp_path / "a"), ("b", tmp_path / "b")], tmp_path / "page.html")

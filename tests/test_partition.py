@@ -390,7 +390,8 @@ def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
     kept[idx] = True
     # what the patch looks like stays: its renders from above with and without the cleaning agree
     # (what goes of it is hidden: the sand under the pebbles, their undersides)
-    from wast3d.render import fit_orbit, render_views
+    from wast3d.cameras import fit_orbit
+    from wast3d.render import render_views
 
     patch = scene.subset(parts["patch"])
     cams = fit_orbit(patch, 3, 96, elevations_deg=(40.0, 70.0))

@@ -34,7 +34,7 @@ def test_splat_arrays_and_placement():
     top = splat_arrays(s, max_gaussians=100)
     assert len(top["centers"]) == 100 and top["opacities"].min() >= np.sort(a["opacities"][:, 0])[-100] - 1e-7
     scale, pos = unit_placement(s.transform(translation=torch.tensor([5.0, -3.0, 2.0]), scale=7.0))
-    from wast3d.render import scene_bounds
+    from wast3d.cameras import scene_bounds
 
     moved = s.transform(translation=torch.tensor([5.0, -3.0, 2.0]), scale=7.0)
     centre, radius = scene_bounds(moved)

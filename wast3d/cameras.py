@@ -1,4 +1,4 @@
-"""Pinhole cameras.
+"""Pinhole cameras, and orbit rigs fitted to a scene (:func:`fit_orbit`).
 
 Conventions (OpenCV, as gsplat): camera looks down +z, x right, y down; ``world_to_cam`` is a 4x4
 matrix mapping world points to camera coordinates; pixel (i, j) covers [i, i+1) x [j, j+1) so its
@@ -12,8 +12,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import torch
+
+from .geometry import robust_bounds
+
+if TYPE_CHECKING:
+    from .gaussians import GaussianScene
 
 
 @dataclass
@@ -114,3 +120,20 @@ def orbit_cameras(n: int, radius: float, width: int, height: int, fov_deg: float
                                         dtype=torch.float64)
         cams.append(Camera(look_at(eye, t, up), f, f, width / 2.0, height / 2.0, width, height, name=f"orbit_{i:03d}"))
     return cams
+
+
+# ---- camera rigs fitted to a scene --------------------------------------------------------------
+
+
+def scene_bounds(scene: GaussianScene, q: float = 0.005) -> tuple[torch.Tensor, float]:
+    """Robust centre [3] and radius of a scene (:func:`wast3d.geometry.robust_bounds` of its means)."""
+    return robust_bounds(scene.means, q)
+
+
+def fit_orbit(scene: GaussianScene, n: int, width: int, height: int | None = None, fov_deg: float = 40.0,
+              elevations_deg=(25.0, 45.0), margin: float = 0.95, phase_deg: float = 30.0) -> list[Camera]:
+    """``n`` orbit cameras around the scene's centre at a distance that frames it (z up)."""
+    centre, radius = scene_bounds(scene)
+    dist = margin * radius / math.sin(math.radians(fov_deg) / 2)
+    return orbit_cameras(n, dist, width, height or width, fov_deg, tuple(elevations_deg),
+                         tuple(centre.tolist()), phase_deg=phase_deg)

@@ -282,7 +282,7 @@ for _stage in STAGES.values():
 
 
 def columns_command(name: str, help_: str, out: str, fn: str):
-    """A command writing ``out`` from LABEL=RENDER_FOLDER columns with ``render.<fn>(columns, out)``."""
+    """A command writing ``out`` from LABEL=RENDER_FOLDER columns with ``figures.<fn>(columns, out)``."""
 
     @command(name, help_)
     def cmd(sub):
@@ -290,9 +290,9 @@ def columns_command(name: str, help_: str, out: str, fn: str):
         sub.add_argument("columns", nargs="+", help="LABEL=RENDER_FOLDER ...")
 
         def run(a):
-            from . import render
+            from . import figures
 
-            getattr(render, fn)(_columns(a.columns, name), getattr(a, out))
+            getattr(figures, fn)(_columns(a.columns, name), getattr(a, out))
 
         return run
 

@@ -27,7 +27,6 @@ import torch
 import torch.nn.functional as F
 
 from .device import resolve_device
-
 from .options import checked, option
 
 log = logging.getLogger(__name__)

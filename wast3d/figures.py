@@ -1,13 +1,19 @@
-"""Pictures of intermediate artifacts (pyvista off-screen for 3D point sets, matplotlib for curves)."""
+"""Pictures: of intermediate artifacts (pyvista off-screen for 3D point sets, matplotlib for curves), and
+of renders (grids, captions, comparison sheets, turntable videos and their HTML page)."""
 
 from __future__ import annotations
 
+import logging
+import math
 import os
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
 from .io_utils import atomic_path
+
+log = logging.getLogger(__name__)
 
 
 def _plotter(size=(900, 700)):
@@ -91,3 +97,112 @@ def loss_curves_picture(curves: list[list[float]], path: str | Path, title: str 
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
+
+
+# ---- pictures of renders: grids, captions, comparison sheets, turntable videos and pages ----------------
+
+
+def to_uint8(img: torch.Tensor) -> np.ndarray:
+    """[H, W, C] float in [0, 1] -> uint8."""
+    return (img.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def grid(images: list[np.ndarray], cols: int) -> np.ndarray:
+    """Tile [H, W, C] images into a grid, row-major; cells as large as the largest image, smaller
+    images centred on white (a 512 px close-up beside 256 px key views)."""
+    rows = math.ceil(len(images) / cols)
+    h, w = max(im.shape[0] for im in images), max(im.shape[1] for im in images)
+    c = images[0].shape[2]
+    out = np.full((rows * h, cols * w, c), 255, np.uint8)
+    for i, im in enumerate(images):
+        r, k = divmod(i, cols)
+        y, x = r * h + (h - im.shape[0]) // 2, k * w + (w - im.shape[1]) // 2
+        out[y:y + im.shape[0], x:x + im.shape[1]] = im
+    return out
+
+
+def save_png(path: str | Path, img: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, img, extension=".png")
+
+
+def label_image(img: np.ndarray, text: str, height: int = 22) -> np.ndarray:
+    """``img`` with a white caption strip of ``height`` px above it."""
+    from PIL import Image, ImageDraw
+
+    strip = Image.new("RGB", (img.shape[1], height), (255, 255, 255))
+    ImageDraw.Draw(strip).text((4, 4), text, fill=(0, 0, 0))
+    return np.concatenate([np.asarray(strip), img[..., :3]], axis=0)
+
+
+SHEET_ROWS = ("key_00_rgb", "key_01_rgb", "closeup_rgb", "closeup_normal", "closeup_depth")
+
+
+def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, rows=SHEET_ROWS) -> None:
+    """Side-by-side sheet: one column per (label, render folder), one row per picture name in ``rows``
+    (missing pictures are left white)."""
+    cells = []
+    shape = None
+    for _, folder in columns:
+        for r in rows:
+            p = Path(folder) / f"{r}.png"
+            if p.exists():
+                shape = iio.imread(p).shape[:2]
+                break
+        if shape:
+            break
+    if shape is None:
+        raise FileNotFoundError("comparison sheet: none of the render folders has pictures")
+    for r in rows:
+        for label, folder in columns:
+            p = Path(folder) / f"{r}.png"
+            img = iio.imread(p)[..., :3] if p.exists() else np.full((*shape, 3), 255, np.uint8)
+            cells.append(label_image(img, f"{label} | {r}"))
+    h = max(c.shape[0] for c in cells)
+    cells = [np.pad(c, ((h - c.shape[0], 0), (0, 0), (0, 0)), constant_values=255) for c in cells]
+    save_png(out, grid(cells, len(columns)))
+
+
+def write_mp4(path: str | Path, frames: np.ndarray, fps: float) -> bool:
+    """frames [T, H, W, 3] uint8 -> an H.264 MP4 (yuv420p, faststart: what browsers play) at ``path``,
+    atomically, with the ffmpeg that the ``imageio-ffmpeg`` wheel carries; odd sizes are padded by one
+    edge pixel (yuv420p needs even ones). Without ``imageio-ffmpeg``, logs that and returns False."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        log.warning("%s: no MP4 written (imageio-ffmpeg is not installed); the GIF is", path)
+        return False
+    _, H, W, _ = frames.shape
+    frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")
+    with atomic_path(path) as tmp:
+        w = imageio_ffmpeg.write_frames(str(tmp), (frames.shape[2], frames.shape[1]), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                        quality=8, macro_block_size=1, ffmpeg_log_level="error",
+                                        output_params=["-movflags", "+faststart"])
+        w.send(None)
+        for f in frames:
+            w.send(np.ascontiguousarray(f))
+        w.close()
+    return True
+
+
+def turntable_page(columns: list[tuple[str, str | Path]], out: str | Path) -> None:
+    """One self-contained HTML page: per (label, render folder), its ``turntable.mp4`` embedded as a
+    looping video (the GIF where a folder has no MP4); for the Snakemake report, which shows HTML."""
+    import base64
+    import html
+
+    cells = []
+    for label, folder in columns:
+        mp4, gif = Path(folder) / "turntable.mp4", Path(folder) / "turntable.gif"
+        if mp4.exists():
+            src = base64.b64encode(mp4.read_bytes()).decode()
+            media = f'<video autoplay loop muted playsinline src="data:video/mp4;base64,{src}"></video>'
+        elif gif.exists():
+            media = f'<img src="data:image/gif;base64,{base64.b64encode(gif.read_bytes()).decode()}">'
+        else:
+            raise FileNotFoundError(f"turntable page: {folder} has neither turntable.mp4 nor turntable.gif")
+        cells.append(f"<figure>{media}<figcaption>{html.escape(label)}</figcaption></figure>")
+    style = "body{font-family:sans-serif;display:flex;flex-wrap:wrap}figure{margin:4px}video,img{width:256px}"
+    with atomic_path(out) as tmp:
+        Path(tmp).write_text(f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><style>{style}</style></head>"
+                             f"<body>\n{''.join(cells)}\n</body></html>\n")

@@ -54,9 +54,8 @@ import torch.nn.functional as F
 
 from .datasets import Dataset
 from .gaussians import GaussianScene, num_sh_rest
-from .rasterizer import rasterize
-
 from .options import checked, option
+from .rasterizer import rasterize
 
 log = logging.getLogger(__name__)
 

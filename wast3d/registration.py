@@ -52,7 +52,6 @@ import torch
 
 from .gaussians import quat_to_rotmat
 from .geometry import KnnIndex, frame_from_normal, kabsch, knn, local_normals
-
 from .options import checked, option
 
 log = logging.getLogger(__name__)

@@ -57,9 +57,8 @@ import torch
 from .device import resolve_device
 from .gaussians import SH_C0, GaussianScene, footprint, luminance
 from .geometry import kabsch, knn
-from .sinkhorn import SinkhornConfig, sinkhorn
-
 from .options import checked, option
+from .sinkhorn import SinkhornConfig, sinkhorn
 
 log = logging.getLogger(__name__)
 

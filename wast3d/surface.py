@@ -75,7 +75,6 @@ import torch
 
 from .gaussians import GaussianScene, footprint, rgb_to_sh_dc
 from .geometry import knn
-
 from .options import checked, option
 
 log = logging.getLogger(__name__)
@@ -183,7 +182,7 @@ def visible_mask(scene: GaussianScene, views: int, resolution: int, tol: float,
                  elevations_deg: tuple = CONTENT_ELEVATIONS) -> torch.Tensor:
     """[N] bool: the centre lies on the rendered surface (|z - depth| < tol * radius, alpha > 0.5)
     in at least one of ``views`` orbit views (at ``elevations_deg``, cycled)."""
-    from .render import fit_orbit, scene_bounds
+    from .cameras import fit_orbit, scene_bounds
 
     _, radius = scene_bounds(scene)
     seen = torch.zeros(len(scene), dtype=torch.bool)
@@ -204,7 +203,7 @@ def outward_normals(scene: GaussianScene, views: int = 24, resolution: int = 128
     scene's centre. A ray test through an occupancy grid got 27 % of the ant's signs wrong on its thin
     legs; this one is right wherever a camera sees the surface."""
     from .gaussians import shortest_axis
-    from .render import fit_orbit, scene_bounds
+    from .cameras import fit_orbit, scene_bounds
 
     centre, radius = scene_bounds(scene)
     x = scene.means.detach()
@@ -230,7 +229,7 @@ def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_
     times the integral of its footprint, s_1 s_2 its two largest scales, z_i / f the pixel size at its
     depth). About 1 for an unoccluded Gaussian seen face-on, 0 for one hidden in every view; independent
     of the resolution and of the Gaussians' sizes."""
-    from .render import fit_orbit
+    from .cameras import fit_orbit
     from .rasterizer import rasterize
 
     best = torch.zeros(len(scene), dtype=torch.float64)
@@ -324,7 +323,8 @@ def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
     below that view's solid rendered depth by more than ``tol`` x the scene's radius) in more than
     ``max_violations`` views: free space seen from elsewhere, where the expected depth of a pixel mixed a
     thin part with what lies behind it."""
-    from .render import RenderConfig, fit_orbit, pixel_rays, render_maps, scene_bounds
+    from .cameras import fit_orbit, scene_bounds
+    from .render import RenderConfig, pixel_rays, render_maps
 
     cfg = RenderConfig(normals="axis", background=(0.0, 0.0, 0.0))
     _, radius = scene_bounds(scene)
@@ -460,7 +460,7 @@ def surface_points(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[GaussianSc
         kept = scene.subset(idx)
         P, C, N = backprojected_pixels(kept, cfg.views, cfg.resolution, tol=cfg.depth_tolerance)
     if cfg.spacing > 0:
-        from .render import scene_bounds
+        from .cameras import scene_bounds
 
         h = cfg.spacing * scene_bounds(kept)[1]
     else:

@@ -24,7 +24,7 @@ import torch
 
 from .cameras import Camera, fov_to_focal, look_at
 from .gaussians import GaussianScene
-from .render import scene_bounds
+from .cameras import scene_bounds
 
 log = logging.getLogger(__name__)
 
