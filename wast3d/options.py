@@ -58,6 +58,17 @@ def undocumented(cls) -> list[str]:
     return [f.name for f in dataclasses.fields(cls) if "help" not in f.metadata]
 
 
+def make_config(cls, params: dict | None, where: str):
+    """Dataclass ``cls`` built from the dict ``params``: an unknown key is a ValueError naming ``where``,
+    the key and the known ones (the options' own values are checked by :func:`checked`)."""
+    params = dict(params or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(params) - names)
+    if unknown:
+        raise ValueError(f"{where}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    return cls(**params)
+
+
 _BOUNDS = {"minimum": (">=", lambda v, b: v >= b), "exclusiveMinimum": (">", lambda v, b: v > b),
            "maximum": ("<=", lambda v, b: v <= b), "exclusiveMaximum": ("<", lambda v, b: v < b)}
 

@@ -18,19 +18,10 @@ import torch
 
 from .device import resolve_device
 from .io_utils import atomic_path, load_npz, read_json, save_npz, write_json
+from .options import make_config
 from .ply import read_ply, write_ply
 
 log = logging.getLogger(__name__)
-
-
-def make_config(cls, params: dict | None, stage: str):
-    """Build a config dataclass from a dict, rejecting unknown keys with a message naming them."""
-    params = dict(params or {})
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(params) - names)
-    if unknown:
-        raise ValueError(f"{stage}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
-    return cls(**params)
 
 
 def run_surface(*, scene: Path, out_ply: Path, out_json: Path, params: dict) -> None:
@@ -395,13 +386,9 @@ def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Pat
     from .image_metrics import coverage, texture_levels
     from .metrics import weights_free_metrics
     from .render import read_frames
-    from .stages import STAGES, config_class
+    from .stages import stage_configs
 
-    blocks = STAGES["evaluate"].config  # block name -> its dataclass
-    unknown = sorted(set(params) - set(blocks))
-    if unknown:
-        raise ValueError(f"evaluate: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(blocks)})")
-    cfgs = {k: make_config(config_class(spec), params.get(k), f"evaluate.{k}") for k, spec in blocks.items()}
+    cfgs = stage_configs("evaluate", params)  # block name -> its config
     mcfg, tcfg, ccfg, kcfg, ecfg = (cfgs[k] for k in ("metrics", "texture", "crops", "clip", "elements"))
     result_ply, style_ply, content_ply = result, style, content
     result, style, content = read_ply(result_ply), read_ply(style_ply), read_ply(content_ply)

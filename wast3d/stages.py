@@ -4,7 +4,7 @@ and the :mod:`wast3d.pipeline` function that runs it.
 From these declarations come the ``wast3d <command>`` subcommands (one named option per file:
 ``--content PATH`` for an input, ``--out-npz PATH`` for an output), the Snakemake rules' command lines
 (``stage_args`` in ``workflow/rules/common.smk``: a rule's input and output files of the same names)
-and the stage list in ``docs/workflow.md``. A file the rule names but the stage does not declare, or
+and ``docs/stages.md``. A file the rule names but the stage does not declare, or
 a required one it lacks, is an error when the workflow is built, not a silently swapped argument.
 
 Conventions: a port's name is the rule's input or output key and the pipeline function's keyword
@@ -84,12 +84,6 @@ class Stage:
     def outputs(self) -> tuple[Port, ...]:
         return tuple(p for p in self.ports if p.output)
 
-    def port(self, name: str) -> Port:
-        for p in self.ports:
-            if p.name == name:
-                return p
-        raise KeyError(name)
-
     def argv(self, inputs: Mapping[str, object], outputs: Mapping[str, object]) -> list[str]:
         """The command's options for the files given by port name (``inputs`` and ``outputs``; None or
         an empty list: not given), in declaration order -> ``[command, --opt, path, ...]``. Raises
@@ -103,13 +97,10 @@ class Stage:
                     value = value[0] if value else None
                 if value is None:
                     continue
-                try:
-                    p = self.port(name)
-                except KeyError:
-                    p = None
+                p = next((q for q in self.ports if q.name == name), None)
                 if p is None or p.output != (kind == "output"):
                     known = ", ".join(q.name for q in (self.outputs if kind == "output" else self.inputs))
-                    raise ValueError(f"stage {self.command}: no {kind} named '{name}' (its {kind}s: {known})") from None
+                    raise ValueError(f"stage {self.command}: no {kind} named '{name}' (its {kind}s: {known})")
                 given[name] = value
         missing = [p.name for p in self.ports if p.required and p.name not in given]
         if missing:
@@ -236,39 +227,39 @@ def config_class(spec: str):
     return getattr(importlib.import_module(module), name)
 
 
-def resolved_params(command: str, params: dict | None) -> dict:
-    """The parameters stage ``command`` runs with: ``params`` with every default of its config
-    dataclass filled in (checked by it: an unknown key or a bad value is a ValueError naming the stage).
-    The rules pass these, so that a changed default changes a stage's parameters and Snakemake re-runs
-    it (and what depends on it) instead of keeping a result made under the old default."""
-    import dataclasses
+def stage_configs(command: str, params: dict | None) -> dict:
+    """The configs stage ``command`` runs with, built from ``params`` by its dataclass(es) (an unknown
+    key or block, or a bad value, is a ValueError naming it): ``{None: config}`` for a stage of one
+    block, ``{block: config}`` for one of several (evaluate). Keys in ``passthrough`` are left out."""
+    from wast3d.options import make_config  # absolute: the workflow loads this module by path
 
     st = STAGES[command]
+    params = {k: v for k, v in (params or {}).items() if k not in st.passthrough}
+    if not isinstance(st.config, dict):
+        return {None: make_config(config_class(st.config), params, command)}
+    unknown = sorted(set(params) - set(st.config))
+    if unknown:
+        raise ValueError(f"{command}: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(st.config)})")
+    return {k: make_config(config_class(spec), params.get(k), f"{command}.{k}") for k, spec in st.config.items()}
+
+
+def resolved_params(command: str, params: dict | None) -> dict:
+    """The parameters stage ``command`` runs with: ``params`` with every default of its config
+    dataclass(es) filled in (:func:`stage_configs`). The rules pass these, so that a changed default
+    changes a stage's parameters and Snakemake re-runs it (and what depends on it) instead of keeping
+    a result made under the old default."""
+    import dataclasses
+
     params = dict(params or {})
-    if st.config is None:
+    if STAGES[command].config is None:
         return params
-    specs = st.config if isinstance(st.config, dict) else {None: st.config}
-    if isinstance(st.config, dict):
-        unknown = sorted(set(params) - set(specs))
-        if unknown:
-            raise ValueError(f"{command}: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(specs)})")
-    out = {k: params.pop(k) for k in st.passthrough if k in params}
-    for key, spec in specs.items():
-        block = params if key is None else dict(params.get(key) or {})
-        cls = config_class(spec)
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(block) - names)
-        if unknown:
-            where = command if key is None else f"{command}.{key}"
-            raise ValueError(f"{where}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
-        full = dataclasses.asdict(cls(**block))
+    out = {k: params[k] for k in STAGES[command].passthrough if k in params}
+    for key, cfg in stage_configs(command, params).items():
         if key is None:
-            out.update(full)
+            out.update(dataclasses.asdict(cfg))
         else:
-            out[key] = full
+            out[key] = dataclasses.asdict(cfg)
     return out
-
-
 
 
 # ---- artifact paths ---------------------------------------------------------------------------------
@@ -307,3 +298,9 @@ def artifact(name: str, results: str | Path | None = None, **wildcards) -> str:
         wildcards.setdefault("experiment", wildcards["method"])
     path = PATHS[name].format_map(_Keep(**{k: str(v) for k, v in wildcards.items()}))
     return path if results is None else str(Path(results) / path)
+
+
+def beside(name: str, suffix: str, results: str | Path | None = None, **wildcards) -> str:
+    """The file a stage writes beside artifact ``name``, with the same stem and ``suffix``
+    (``clusters.json`` beside ``clusters.npz``)."""
+    return str(Path(artifact(name, results, **wildcards)).with_suffix(suffix))

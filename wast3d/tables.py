@@ -9,7 +9,7 @@ from pathlib import Path
 import pandas as pd
 
 from .io_utils import atomic_path, read_json
-from .stages import artifact
+from .stages import artifact, beside
 
 log = logging.getLogger(__name__)
 
@@ -25,19 +25,14 @@ def _bench(path: Path) -> dict:
         return {}
 
 
-def _beside(name: str, suffix: str, results: Path, **wildcards) -> Path:
-    """The report a stage writes beside artifact ``name`` (``losses.json`` beside ``losses.csv``)."""
-    return Path(artifact(name, results, **wildcards)).with_suffix(suffix)
-
-
 def _rule_benchmark(results: Path, rule: str, *wildcards: str) -> Path:
     return Path(artifact("rule_benchmark", results, rule=rule, job="_".join(wildcards)))
 
 
 def run_row(results: Path, content: str, style: str, experiment: str) -> dict:
     pair = dict(content=content, style=style, experiment=experiment)
-    loss = read_json(_beside("losses", ".json", results, **pair))
-    final = read_json(_beside("final", ".json", results, **pair))
+    loss = read_json(Path(beside("losses", ".json", results, **pair)))
+    final = read_json(Path(beside("final", ".json", results, **pair)))
     b = _bench(_rule_benchmark(results, "sinkhorn", f"{content}__{style}", experiment))
     cfg = loss.get("config", {})
     row = {
@@ -113,7 +108,7 @@ def table1_row(results: Path, content: str, style: str, method: str, partition: 
     benches = [_bench(p) for p in method_benchmarks(results, content, style, method, partition)]
     # where the method's own stage recorded its device (the unstylized input has no such stage)
     report = "final" if method == "colour_ot" else ("losses" if partition is not None else None)
-    device = read_json(_beside(report, ".json", results, content=content, style=style, method=method)).get("device") \
+    device = read_json(Path(beside(report, ".json", results, content=content, style=style, method=method))).get("device") \
         if report else None
     clip = ev.get("clip_similarity")
     row = {"content": content, "style": style, "method": label, "run": method,

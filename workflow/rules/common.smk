@@ -213,7 +213,7 @@ def pretrain_checkpoint(w):
 
 def beside(name, suffix, **wildcards):
     """The file a stage writes beside artifact ``name``, with the same stem (``clusters.json``)."""
-    return os.path.splitext(results(name, **wildcards))[0] + suffix
+    return _DECLARATIONS.beside(name, suffix, RESULTS, **wildcards)
 
 
 def stage_args(command, ignore=(), **paths):
