@@ -469,9 +469,9 @@ def test_recolouring_colour_outliers_keeps_every_position():
     assert m == 0 and torch.equal(same.sh_dc, odd.sh_dc)
 
 
-def test_style_cleaning_recolours_specks_by_default(tmp_path):
-    """The style stage at its defaults (no parameters) recolours planted magenta specks and says how
-    many; recolour 0 keeps them."""
+def test_style_cleaning_recolours_specks_when_asked(tmp_path):
+    """The style stage with recolour 0.3 recolours planted magenta specks and says how many; at its
+    default (off, since it smears a real capture's coloured features) it keeps them."""
     import json
 
     from wast3d.pipeline import run_style_clean
@@ -484,7 +484,8 @@ def test_style_cleaning_recolours_specks_by_default(tmp_path):
     dc[pick] = (torch.tensor([1.0, 0.0, 1.0]) - 0.5) / 0.28209479177387814
     write_ply(tmp_path / "s.ply", GaussianScene(**{**s.tensors(), "sh_dc": dc}, element=s.element))
     params = {"visibility": False}  # the specks' colours, not their visibility, are under test
-    run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "c.ply", out_json=tmp_path / "c.json", params=params)
+    run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "c.ply", out_json=tmp_path / "c.json",
+                    params={**params, "recolour": 0.3})
     report = json.loads((tmp_path / "c.json").read_text())
     assert report["recoloured_colour_outliers"] >= 50
     from wast3d.ply import read_ply
@@ -493,7 +494,7 @@ def test_style_cleaning_recolours_specks_by_default(tmp_path):
     magenta = ((out.rgb - torch.tensor([1.0, 0.0, 1.0])).norm(dim=1) < 0.2).sum()
     assert magenta <= 5
     run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "k.ply", out_json=tmp_path / "k.json",
-                    params={**params, "recolour": 0.0})
+                    params=params)
     assert ((read_ply(tmp_path / "k.ply").rgb - torch.tensor([1.0, 0.0, 1.0])).norm(dim=1) < 0.2).sum() >= 50
 
 

@@ -58,11 +58,11 @@ this rule (the procedural wicker, which is never cleaned, loses 6,535 of 30,000)
 outliers* (``colour_outliers`` > 0, off by default): Gaussians whose colour lies farther than that (RGB
 distance) from the median colour of their ``colour_k`` nearest kept neighbours; a trained patch holds
 a few percent of magenta, blue or green Gaussians inside brown and grey pebbles, mostly seen through
-gaps, which the stylization exposes as specks. Dropping them moves the relief (positions go), so by
-default they are *recoloured* instead (``recolour`` 0.3): a kept Gaussian farther than 0.3 from its
-neighbours' median colour takes that median, every position and label stays (the figures:
-docs/measurements.md, session 19). A style whose small colour features are real (flowers in grass,
-flecks in granite) keeps them with ``recolour: 0``.
+gaps, which the stylization exposes as specks. Dropping them moves the relief (positions go);
+``recolour`` > 0 (an option, off by default) gives a kept Gaussian farther than that from its
+neighbours' median colour that median instead, every position and label staying. It cleans the
+trained demo styles, but on a real capture whose small features are colour (the shared fruit label's
+dark letters on white) it smears them grey, so it is not the default (docs/measurements.md, session 19).
 """
 
 from __future__ import annotations
@@ -137,7 +137,7 @@ class StyleCleanConfig:
     colour_outliers: float = option(0.0, "drop Gaussians whose RGB lies farther than this from the median of their "
                                          "colour_k nearest neighbours (0: off): specks of odd colour inside the "
                                          "elements", minimum=0)
-    recolour: float = option(0.3, "the colour-outlier test (this limit) on the kept Gaussians, which take their "
+    recolour: float = option(0.0, "the colour-outlier test (this limit) on the kept Gaussians, which take their "
                                   "neighbours' median colour instead of going: positions, relief and labels stay (0: "
                                   "off)", minimum=0)
     colour_k: int = option(16, "neighbours of the colour-outlier test", minimum=1)
