@@ -75,7 +75,7 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: 
         scene = content_scene(mesh, n, seed=0)
     cam = fit_orbit(scene, 3, size)[1]
     params = [t.requires_grad_(True) for t in scene.tensors().values()]
-    rasterize(scene, cam, backend=backend)["rgb"].sum().backward()  # warm-up (builds kernels, caches)
+    rasterize(scene, cam, backend=backend).rgb.sum().backward()  # warm-up (builds kernels, caches)
     base = _rss("VmRSS")
     Path("/proc/self/clear_refs").write_text("5")  # reset the peak (VmHWM)
     fwd, fb = [], []
@@ -85,7 +85,7 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: 
         t0 = time.perf_counter()
         r = rasterize(scene, cam, backend=backend)
         t1 = time.perf_counter()
-        (r["rgb"].sum() + r["depth"].sum()).backward()
+        (r.rgb.sum() + r.depth.sum()).backward()
         t2 = time.perf_counter()
         fwd.append(t1 - t0)
         fb.append(t2 - t0)
@@ -109,7 +109,7 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: 
     import wast3d
 
     return {"backend": label, "package": str(Path(wast3d.__file__).parent), "gaussians": len(scene), "width": size, "height": size, "threads": torch.get_num_threads(),
-            "visible": int(r["visible_ids"].numel()), "forward_s": med(fwd), "forward_backward_s": med(fb),
+            "visible": int(r.visible_ids.numel()), "forward_s": med(fwd), "forward_backward_s": med(fb),
             "composite_forward_s": med(cf), "composite_backward_s": med(cb),
             "peak_mb_above_baseline": peak - base, "peak_rss_mb": peak}
 

@@ -56,8 +56,8 @@ def main() -> None:
             server.stop()
         h, w = page.shape[:2]
         r = rasterize(placed(read_scene(path)), view_camera(w, h), background=(1.0, 1.0, 1.0), sh_degree=0)
-        render = (r["rgb"].clamp(0, 1) * 255).round().numpy()
-        mask = r["alpha"].numpy() > 0.5
+        render = (r.rgb.clamp(0, 1) * 255).round().numpy()
+        mask = r.alpha.numpy() > 0.5
         mask[: h // 2] = False
         for name, img in (("first splats", first), ("settled", page)):
             rows.append({"scene": path.name, "screenshot": name, "pixels": int(mask.sum()),

@@ -77,7 +77,7 @@ def test_element_share_of_rendered_label_channel():
                  fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
     def share(scene):
         m = rasterize(scene, cam, colors=label_colours(scene.element))
-        return element_share(element_pixels(m["rgb"], m["alpha"])[None], m["alpha"][None])
+        return element_share(element_pixels(m.rgb, m.alpha)[None], m.alpha[None])
     full = share(s)
     assert 0.4 < full < 0.95  # pebbles over sand, seen from above
     assert share(s.subset(s.element == 0)) == 0.0  # the ground alone: no element pixel

@@ -273,15 +273,15 @@ def test_closeup_is_a_crop_of_the_zoomed_render():
     scene = random_scene(300, seed=2)
     cam = fit_orbit(scene, 1, 40)[0]
     cu = closeup_camera(cam, (25, 14), 2.0)
-    full = rasterize(scene, cam.scaled(2.0), background=(1.0, 1.0, 1.0))["rgb"]
-    crop = rasterize(scene, cu, background=(1.0, 1.0, 1.0))["rgb"]
+    full = rasterize(scene, cam.scaled(2.0), background=(1.0, 1.0, 1.0)).rgb
+    crop = rasterize(scene, cu, background=(1.0, 1.0, 1.0)).rgb
     x0, y0 = round(cam.cx * 2 - cu.cx), round(cam.cy * 2 - cu.cy)
     assert (x0, y0) == (31, 9) and crop.shape == (40, 40, 3)
     assert torch.allclose(crop, full[y0:y0 + 40, x0:x0 + 40], atol=1e-5)
     # closeup_size: the same fragment at twice the pixels (a crop of the render at 4x)
     big = closeup_camera(cam, (25, 14), 2.0, size=80)
-    full4 = rasterize(scene, cam.scaled(4.0), background=(1.0, 1.0, 1.0))["rgb"]
-    crop2 = rasterize(scene, big, background=(1.0, 1.0, 1.0))["rgb"]
+    full4 = rasterize(scene, cam.scaled(4.0), background=(1.0, 1.0, 1.0)).rgb
+    crop2 = rasterize(scene, big, background=(1.0, 1.0, 1.0)).rgb
     x1, y1 = round(cam.cx * 4 - big.cx), round(cam.cy * 4 - big.cy)
     assert (x1, y1) == (2 * x0, 2 * y0) and crop2.shape == (80, 80, 3)
     assert torch.allclose(crop2, full4[y1:y1 + 80, x1:x1 + 80], atol=1e-5)
@@ -322,8 +322,8 @@ def test_normals_of_a_plane(mode):
     n_world = torch.tensor([-math.sin(math.radians(30)), 0.0, math.cos(math.radians(30))])
     expect = R @ n_world
     expect = -expect if expect[2] > 0 else expect  # facing the camera
-    inner = (m["alpha"] > 0.99)[4:-4, 4:-4]
-    got = m["normal"][4:-4, 4:-4][inner]
+    inner = (m.alpha > 0.99)[4:-4, 4:-4]
+    got = m.normal[4:-4, 4:-4][inner]
     got = got[got.norm(dim=1) > 0.5]  # depth normals are 0 where a neighbour is background
     assert len(got) > 500
     cos = (got / got.norm(dim=1, keepdim=True) @ expect).median()

@@ -397,7 +397,7 @@ def test_style_cleaning_removes_floaters_haze_and_buried_gaussians(caplog):
     cams = fit_orbit(patch, 3, 96, elevations_deg=(40.0, 70.0))
     before = render_views(patch, cams)
     after = render_views(scene.subset(idx), cams)
-    assert max(float((a["rgb"] - b["rgb"]).abs().mean()) for a, b in zip(after, before)) < 0.01
+    assert max(float((a.rgb - b.rgb).abs().mean()) for a, b in zip(after, before)) < 0.01
     assert float(kept[parts["patch"]].double().mean()) > 0.6
     assert int(kept[parts["far"]].sum()) == 0  # floaters outside the patch box
     assert int(kept[parts["haze"]].sum()) == 0  # translucent

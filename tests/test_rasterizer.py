@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -33,10 +34,10 @@ def test_closed_form_single_gaussian(backend):
     a = o * torch.exp(-((xs - 20) ** 2 + (ys - 15) ** 2) / (2 * s2))
     a = torch.where(a >= ALPHA_MIN, a.clamp_max(0.99), torch.zeros_like(a))
     expect = a[..., None] * torch.tensor([0.9, 0.2, 0.1], dtype=torch.float64) + (1 - a[..., None]) * bg
-    assert torch.allclose(r["alpha"], a, atol=1e-12)
-    assert torch.allclose(r["rgb"], expect, atol=1e-12)
-    assert torch.allclose(r["depth"][a > 0], torch.full_like(r["depth"][a > 0], z0))
-    assert (r["depth"][a == 0] == 0).all()
+    assert torch.allclose(r.alpha, a, atol=1e-12)
+    assert torch.allclose(r.rgb, expect, atol=1e-12)
+    assert torch.allclose(r.depth[a > 0], torch.full_like(r.depth[a > 0], z0))
+    assert (r.depth[a == 0] == 0).all()
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -50,7 +51,7 @@ def test_gradcheck_float64(backend):
     def f(*ts):
         s = GaussianScene(**dict(zip(names, ts)))
         r = rasterize(s, cam, background=(0.2, 0.4, 0.6), backend=backend)
-        return (r["rgb"] * w).sum(), r["alpha"].square().sum(), (r["depth"] * r["alpha"]).sum()
+        return (r.rgb * w).sum(), r.alpha.square().sum(), (r.depth * r.alpha).sum()
 
     inputs = [t.clone().requires_grad_(True) for t in scene.tensors().values()]
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
@@ -65,10 +66,10 @@ def test_native_matches_torch():
         for t in s.tensors().values():
             t.requires_grad_(True)
         r = rasterize(s, cam, background=(1.0, 1.0, 1.0), backend=b)
-        ((r["rgb"] * torch.linspace(0, 1, 3)).sum() + r["depth"].sum() * 0.1 + r["alpha"].sum()).backward()
+        ((r.rgb * torch.linspace(0, 1, 3)).sum() + r.depth.sum() * 0.1 + r.alpha.sum()).backward()
         outs[b] = (r, {k: v.grad for k, v in s.tensors().items()})
     for k in ("rgb", "alpha", "depth"):
-        assert torch.allclose(outs["torch"][0][k], outs["native"][0][k], atol=2e-4), k
+        assert torch.allclose(getattr(outs["torch"][0], k), getattr(outs["native"][0], k), atol=2e-4), k
     for k, g in outs["torch"][1].items():
         assert torch.allclose(g, outs["native"][1][k], atol=1e-3 * (1 + g.abs().max())), k
 
@@ -149,11 +150,11 @@ def test_empty_and_offscreen():
     cam = orbit_cameras(1, 3.0, 16, 16)[0]
     for b in BACKENDS:
         r = rasterize(GaussianScene.empty(), cam, background=(0.5, 0.5, 0.5), backend=b)
-        assert torch.equal(r["rgb"], torch.full((16, 16, 3), 0.5)) and (r["alpha"] == 0).all()
+        assert torch.equal(r.rgb, torch.full((16, 16, 3), 0.5)) and (r.alpha == 0).all()
         behind = random_scene(10)
         behind.means[:] = torch.tensor([100.0, 0, 0])  # far outside the view
         r = rasterize(behind, cam, backend=b)
-        assert (r["alpha"] == 0).all()
+        assert (r.alpha == 0).all()
 
 
 def test_projection_matches_gsplat_reference():
@@ -195,6 +196,31 @@ def test_boxes_per_axis_and_clones_drawn_in_a_fixed_order():
     extra.log_scales[:] = math.log(0.005)
     more = GaussianScene.concat([extra, scene])
     a, b = rasterize(scene, cam), rasterize(more, cam)
-    assert len(b["visible_ids"]) == len(a["visible_ids"]) + 1
-    far = (b["rgb"] - a["rgb"]).abs().amax(-1) > 0
+    assert len(b.visible_ids) == len(a.visible_ids) + 1
+    far = (b.rgb - a.rgb).abs().amax(-1) > 0
     assert far.any() and not far[:36, :36].any()  # the extra drew its corner, and nothing of the clones changed
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_named_result_and_densification_layout(backend):
+    """``visible_ids`` index the scene (not the visible subset), ``means2d``/``radii`` follow them, and
+    ``densify`` (gsplat's strategy layout) holds every Gaussian's screen-space gradient, 0 off-screen."""
+    scene = random_scene(300, seed=11, spread=0.4)
+    cam = orbit_cameras(1, 3.0, 48, 48)[0]
+    scene.means[::3] += 100.0  # a third far outside the view
+    plain = rasterize(scene, cam, backend=backend)
+    assert plain.densify is None and plain.normal is None
+    ids = plain.visible_ids
+    assert 0 < len(ids) < len(scene) and not (ids % 3 == 0).any()
+    assert plain.means2d.shape == (len(ids), 2) and plain.radii.shape == (len(ids),)
+    moved = replace(scene, means=scene.means.clone().requires_grad_(True))
+    r = rasterize(moved, cam, backend=backend, full_means2d=True)
+    assert torch.equal(r.visible_ids, ids) and torch.allclose(r.rgb, plain.rgb)
+    d = r.densify
+    assert d["means2d"].shape == (1, len(scene), 2) and d["radii"].shape == (1, len(scene), 2)
+    assert (d["width"], d["height"], d["n_cameras"]) == (48, 48, 1)
+    assert torch.equal(d["means2d"][0, ids], r.means2d) and (d["radii"][0, ::3] == 0).all()
+    d["means2d"].retain_grad()
+    r.rgb.sum().backward()
+    g = d["means2d"].grad[0]
+    assert (g[::3] == 0).all() and g[ids].abs().sum() > 0

@@ -51,9 +51,9 @@ def transformed_renders(scene, R, t, eyes, backend):
         target = R @ centre + t
         w2c = look_at(target + 3 * radius * torch.tensor(eye, dtype=dt), target).to(dt)
         cam, cam_back = (Camera(w, 64.0, 64.0, 32.0, 32.0, 64, 64) for w in (w2c, w2c @ T))
-        ref = rasterize(scene, cam_back, backend=backend)["rgb"]
-        err = max(err, (rasterize(moved, cam, backend=backend)["rgb"] - ref).abs().max().item())
-        err_unrotated = max(err_unrotated, (rasterize(unrotated, cam, backend=backend)["rgb"] - ref).abs().max().item())
+        ref = rasterize(scene, cam_back, backend=backend).rgb
+        err = max(err, (rasterize(moved, cam, backend=backend).rgb - ref).abs().max().item())
+        err_unrotated = max(err_unrotated, (rasterize(unrotated, cam, backend=backend).rgb - ref).abs().max().item())
     return err, err_unrotated
 
 

@@ -170,11 +170,11 @@ def test_viewer_page_shows_what_the_renderer_shows(tmp_path):
         server.wait(timeout=10)
     h, w = page.shape[:2]
     r = rasterize(placed(scene), view_camera(w, h), background=(1.0, 1.0, 1.0), sh_degree=0)
-    render = (r["rgb"].clamp(0, 1) * 255).round().numpy()
+    render = (r.rgb.clamp(0, 1) * 255).round().numpy()
     iio.imwrite(tmp_path / "viewer_vs_render.png", np.concatenate([page, render.astype(np.uint8)], 1))
     lower = np.zeros((h, w), bool)
     lower[h // 2:] = True
-    drawn = lower & (r["alpha"].numpy() > 0.02)
+    drawn = lower & (r.alpha.numpy() > 0.02)
     assert drawn.sum() > 0.05 * lower.sum(), "the stripes should fill the lower half of the render"
     err = np.abs(page[lower].astype(float) - render[lower]).mean()
     err_drawn = np.abs(page[drawn].astype(float) - render[drawn]).mean(0)

@@ -292,8 +292,8 @@ class Trainer:
         scene = to_scene(self.params)
         out = rasterize(scene, view.camera, background=self.ds.background, sh_degree=self.sh_degree_now(),
                         full_means2d=True)
-        self.strategy.step_pre_backward(self.params, self.optimizers, self.state, self.step, out)
-        img = out["rgb"]
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.state, self.step, out.densify)
+        img = out.rgb
         l1 = (img - view.image).abs().mean()
         s = ssim(img, view.image)
         loss = (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - s)
@@ -313,7 +313,7 @@ class Trainer:
         for o in self.optimizers.values():
             o.step()
             o.zero_grad(set_to_none=True)
-        self.strategy.step_post_backward(self.params, self.optimizers, self.state, self.step, out, packed=False)
+        self.strategy.step_post_backward(self.params, self.optimizers, self.state, self.step, out.densify, packed=False)
         self._cap()
         self.step += 1
         return {"loss": loss.item(), "psnr": psnr(img.detach().clamp(0, 1), view.image), **terms}
@@ -363,7 +363,7 @@ class Trainer:
         scene = to_scene(self.params).detach()
         ps, ss = [], []
         for v in views:
-            img = rasterize(scene, v.camera, background=self.ds.background, sh_degree=self.sh_degree_now())["rgb"]
+            img = rasterize(scene, v.camera, background=self.ds.background, sh_degree=self.sh_degree_now()).rgb
             img = img.clamp(0, 1)
             ps.append(psnr(img, v.image))
             ss.append(float(ssim(img, v.image)))

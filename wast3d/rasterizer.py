@@ -14,9 +14,7 @@ The torch and native backends share the projection (:func:`project`), spherical-
 Conventions: OpenCV camera (see :mod:`wast3d.cameras`); pixel centres at (i + 0.5, j + 0.5); the 2D
 covariance is dilated by 0.3 px^2 (the reference low-pass filter); a Gaussian contributes to a pixel
 when ``alpha = min(0.99, o exp(-sigma)) >= 1/255``; compositing stops before transmittance falls
-below 1e-4. Outputs: ``rgb`` [H, W, 3] (composited on ``background``), ``alpha`` [H, W] and ``depth``
-[H, W], the expected camera-space z of the visible Gaussians (``sum w_i z_i / alpha``, 0 where
-alpha = 0).
+below 1e-4. The result is a :class:`Rendering`, with the same meaning on every backend.
 """
 
 from __future__ import annotations
@@ -252,6 +250,33 @@ def composite_native(means2d, conics, colors, opac, gid, tile_off, width, height
 # ----------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class Rendering:
+    """One view rendered by :func:`rasterize`; the same fields and meanings on every backend.
+
+    - ``rgb`` [H, W, 3]: colour composited on the background;
+    - ``alpha`` [H, W]: accumulated opacity;
+    - ``depth`` [H, W]: expected camera-space z of the visible Gaussians (``sum w_i z_i / alpha``, 0
+      where alpha = 0);
+    - ``visible_ids`` [V]: indices (into the scene) of the Gaussians that reach the image;
+    - ``means2d`` [V, 2]: their pixel centres (differentiable; retains its gradient when it has one);
+    - ``radii`` [V]: the larger half-width of each one's screen box, in pixels;
+    - ``densify``: with ``full_means2d=True``, gsplat's densification-strategy ``info`` (``means2d``
+      [1, N, 2] and ``radii`` [1, N, 2] for all N Gaussians, 0 where not drawn; ``width``, ``height``,
+      ``n_cameras``); otherwise None;
+    - ``normal`` [H, W, 3]: camera-frame normals, filled by :func:`wast3d.render.render_maps` only.
+    """
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    visible_ids: torch.Tensor
+    means2d: torch.Tensor
+    radii: torch.Tensor
+    densify: dict | None = None
+    normal: torch.Tensor | None = None
+
+
 def default_backend(device: torch.device) -> str:
     if device.type == "cuda":
         try:
@@ -268,14 +293,11 @@ def default_backend(device: torch.device) -> str:
 
 def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
               backend: str | None = None, colors: torch.Tensor | None = None,
-              full_means2d: bool = False) -> dict[str, torch.Tensor]:
-    """Render ``scene`` from ``cam``.
+              full_means2d: bool = False) -> Rendering:
+    """Render ``scene`` from ``cam`` (see :class:`Rendering` for what comes back).
 
-    Returns ``rgb`` [H, W, 3], ``alpha`` [H, W], ``depth`` [H, W] (expected z), and for densification
-    ``means2d`` [V, 2] (retains grad), ``visible_ids`` [V] and ``radii`` [V] (the larger half-width of
-    each one's box, in pixels). ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
-    scene's degree. ``full_means2d=True`` returns gsplat's densification layout instead: ``means2d``
-    [1, N, 2] and ``radii`` [1, N, 2] (x and y half-widths, 0: not drawn) for all Gaussians, with ``width``, ``height``, ``n_cameras``.
+    ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
+    scene's degree. ``full_means2d=True`` also returns gsplat's densification layout (``densify``).
     """
     backend = backend or default_backend(scene.device)
     deg = scene.sh_degree if sh_degree is None else min(sh_degree, scene.sh_degree)
@@ -292,12 +314,16 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     feats = torch.cat([rgb, p.depths[:, None]], dim=1)
     gid, tile_off = bin_tiles(p, cam.width, cam.height)
     means2d = p.means2d
-    full = None
+    densify = None
     if full_means2d:
         # [1, N, 2] for densification strategies (gsplat's layout): the visible means are read back out
         # of it, so its .grad holds every Gaussian's screen-space gradient (zero when not visible)
         full = means2d.new_zeros(1, len(scene), 2).index_put((torch.zeros_like(p.ids), p.ids), means2d)
         means2d = full[0, p.ids]
+        radii = p.radii.new_zeros(1, len(scene), 2)
+        radii[0, p.ids] = p.radii
+        densify = {"means2d": full, "radii": radii, "width": cam.width, "height": cam.height, "n_cameras": 1,
+                   "gaussian_ids": p.ids}
     elif means2d.requires_grad:
         means2d.retain_grad()
     fn = {"torch": composite_torch, "native": composite_native}[backend]
@@ -305,13 +331,8 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     alpha = 1 - T
     image = out[..., :3] + T[..., None] * bg
     depth = torch.where(alpha > 1e-6, out[..., 3] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
-    out = {"rgb": image, "alpha": alpha, "depth": depth, "means2d": means2d, "visible_ids": p.ids,
-           "radii": p.radii.amax(-1)}
-    if full_means2d:
-        radii = p.radii.new_zeros(1, len(scene), 2)
-        radii[0, p.ids] = p.radii
-        out.update(means2d=full, radii=radii, width=cam.width, height=cam.height, n_cameras=1, gaussian_ids=p.ids)
-    return out
+    return Rendering(rgb=image, alpha=alpha, depth=depth, visible_ids=p.ids, means2d=means2d,
+                     radii=p.radii.amax(-1), densify=densify)
 
 
 def _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d):  # pragma: no cover - needs CUDA
@@ -332,8 +353,9 @@ def _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d):  # pragma: no 
     if radii.dim() == 2:  # gsplat >= 1.5: a radius per image axis
         radii = radii.max(-1).values
     ids = (radii > 0).nonzero().squeeze(1)  # as the CPU backends: the Gaussians that reach the image
-    out = {"rgb": rc[0, ..., :3], "alpha": alpha, "depth": rc[0, ..., 3], "means2d": meta["means2d"][0][ids],
-           "visible_ids": ids, "radii": radii[ids]}
+    densify = None
     if full_means2d:
-        out.update(means2d=meta["means2d"], radii=meta["radii"], width=cam.width, height=cam.height, n_cameras=1)
-    return out
+        densify = {"means2d": meta["means2d"], "radii": meta["radii"], "width": cam.width, "height": cam.height,
+                   "n_cameras": 1}
+    return Rendering(rgb=rc[0, ..., :3], alpha=alpha, depth=rc[0, ..., 3], visible_ids=ids,
+                     means2d=meta["means2d"][0][ids], radii=radii[ids], densify=densify)

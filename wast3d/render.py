@@ -20,13 +20,13 @@ from .figures import grid, save_png, to_uint8, write_mp4
 from .gaussians import GaussianScene, shortest_axis
 from .io_utils import atomic_path, write_json
 from .options import checked, option
-from .rasterizer import rasterize
+from .rasterizer import Rendering, rasterize
 
 log = logging.getLogger(__name__)
 
 
 @torch.no_grad()
-def render_views(scene: GaussianScene, cams: list[Camera], background=(1.0, 1.0, 1.0), **kw) -> list[dict]:
+def render_views(scene: GaussianScene, cams: list[Camera], background=(1.0, 1.0, 1.0), **kw) -> list[Rendering]:
     return [rasterize(scene, c, background=background, **kw) for c in cams]
 
 
@@ -34,7 +34,7 @@ def save_preview(scene: GaussianScene, path: str | Path, n_views: int = 4, size:
                  background=(1.0, 1.0, 1.0)) -> None:
     """A 1 x n_views grid of orbit renders, for a quick look at a scene."""
     cams = fit_orbit(scene, n_views, size)
-    imgs = [to_uint8(r["rgb"]) for r in render_views(scene, cams, background)]
+    imgs = [to_uint8(r.rgb) for r in render_views(scene, cams, background)]
     save_png(path, grid(imgs, n_views))
 
 
@@ -47,7 +47,7 @@ def export_blender(scene: GaussianScene, root: str | Path, n_views: int = 48, si
     """
     cams = fit_orbit(scene, n_views, size, elevations_deg=(15.0, 35.0, 55.0), phase_deg=7.0)
     outs = render_views(scene, cams, background=(0.0, 0.0, 0.0))
-    write_blender(root, cams, [o["rgb"] for o in outs], [o["alpha"] for o in outs])
+    write_blender(root, cams, [o.rgb for o in outs], [o.alpha for o in outs])
 
 
 # ---- stage 7: turntables, close-ups, depth and normals ---------------------------------------
@@ -182,15 +182,15 @@ def depth_image(depth: torch.Tensor, alpha: torch.Tensor, near: float, far: floa
 
 
 @torch.no_grad()
-def render_maps(scene: GaussianScene, cam: Camera, cfg: RenderConfig) -> dict[str, torch.Tensor]:
-    """RGB [H, W, 3], alpha [H, W], depth [H, W] and camera-frame normals [H, W, 3] of one view."""
+def render_maps(scene: GaussianScene, cam: Camera, cfg: RenderConfig) -> Rendering:
+    """One view's rendering with its camera-frame normals [H, W, 3] (``normal``) filled in."""
     out = rasterize(scene, cam, background=cfg.background)
     if cfg.normals == "axis":
-        nrm = rasterize(scene, cam, background=(0.0, 0.0, 0.0), colors=normal_colors(scene, cam))["rgb"]
+        nrm = rasterize(scene, cam, background=(0.0, 0.0, 0.0), colors=normal_colors(scene, cam)).rgb
         nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     else:
-        nrm = normals_from_depth(out["depth"], out["alpha"], cam)
-    return {"rgb": out["rgb"], "alpha": out["alpha"], "depth": out["depth"], "normal": nrm}
+        nrm = normals_from_depth(out.depth, out.alpha, cam)
+    return replace(out, normal=nrm)
 
 
 @torch.no_grad()
@@ -217,30 +217,30 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
     dist = float((cams[0].center.to(centre) - centre).norm())
     near, far = dist - radius, dist + radius
     keys = key_indices(cfg)
-    ref_alpha = rasterize(reference, cams[keys[0]], background=cfg.background)["alpha"]
+    ref_alpha = rasterize(reference, cams[keys[0]], background=cfg.background).alpha
     pixel = fragment_pixel(ref_alpha)
     gif = []
     for i, cam in enumerate(tqdm(cams, desc="turntable", disable=not progress)):
         if i in keys:
             m = render_maps(scene, cam, cfg)
             k = keys.index(i)
-            save_png(out_dir / f"key_{k:02d}_rgb.png", to_uint8(m["rgb"]))
-            save_png(out_dir / f"key_{k:02d}_depth.png", depth_image(m["depth"], m["alpha"], near, far))
-            save_png(out_dir / f"key_{k:02d}_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
+            save_png(out_dir / f"key_{k:02d}_rgb.png", to_uint8(m.rgb))
+            save_png(out_dir / f"key_{k:02d}_depth.png", depth_image(m.depth, m.alpha, near, far))
+            save_png(out_dir / f"key_{k:02d}_normal.png", to_uint8(normal_image(m.normal, m.alpha)))
         else:
             m = rasterize(scene, cam, background=cfg.background)
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
         save_element_frame(scene, cam, out_dir, i)
-        gif.append(to_uint8(m["rgb"]))
+        gif.append(to_uint8(m.rgb))
     gif = np.stack(gif)
     with atomic_path(out_dir / "turntable.gif") as tmp:
         iio.imwrite(tmp, gif, extension=".gif", duration=1000.0 / cfg.fps, loop=0)
     write_mp4(out_dir / "turntable.mp4", gif, cfg.fps)
     cu = closeup_camera(cams[keys[0]], pixel, cfg.closeup_zoom, cfg.closeup_size)
     m = render_maps(scene, cu, cfg)
-    save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
-    save_png(out_dir / "closeup_depth.png", depth_image(m["depth"], m["alpha"], near, far))
-    save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
+    save_png(out_dir / "closeup_rgb.png", to_uint8(m.rgb))
+    save_png(out_dir / "closeup_depth.png", depth_image(m.depth, m.alpha, near, far))
+    save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m.normal, m.alpha)))
     info = {"frames": cfg.frames, "key_frames": keys, "fragment_pixel": list(pixel), "depth_range": [near, far],
             "normals": cfg.normals, "gaussians": len(scene), "config": asdict(cfg),
             "cameras": camera_dicts(cams + [cu])}
@@ -257,7 +257,7 @@ def save_element_frame(scene: GaussianScene, cam: Camera, out_dir: Path, i: int)
 
     m = rasterize(scene, cam, background=(0.0, 0.0, 0.0), colors=label_colours(scene.element, scene.dtype))
     (out_dir / "elements").mkdir(exist_ok=True)
-    save_png(out_dir / "elements" / f"{i:03d}.png", to_uint8(element_pixels(m["rgb"], m["alpha"])))
+    save_png(out_dir / "elements" / f"{i:03d}.png", to_uint8(element_pixels(m.rgb, m.alpha)))
 
 
 def read_element_frames(folder: str | Path) -> torch.Tensor | None:
@@ -269,12 +269,12 @@ def read_element_frames(folder: str | Path) -> torch.Tensor | None:
     return torch.from_numpy(np.stack([iio.imread(f) for f in files])).float() / 255.0
 
 
-def straight_rgba(m: dict, background) -> torch.Tensor:
-    """A render composited on ``background`` (``m["rgb"]`` [H, W, 3], ``m["alpha"]`` [H, W]) -> [H, W, 4]
+def straight_rgba(m: Rendering, background) -> torch.Tensor:
+    """A render composited on ``background`` (``m.rgb`` [H, W, 3], ``m.alpha`` [H, W]) -> [H, W, 4]
     straight (un-premultiplied) RGBA, as the frames are stored."""
-    a = m["alpha"].clamp(0, 1)
-    bg = torch.as_tensor(background, dtype=m["rgb"].dtype)
-    straight = ((m["rgb"] - (1 - a[..., None]) * bg) / a[..., None].clamp_min(1e-6)).clamp(0, 1)
+    a = m.alpha.clamp(0, 1)
+    bg = torch.as_tensor(background, dtype=m.rgb.dtype)
+    straight = ((m.rgb - (1 - a[..., None]) * bg) / a[..., None].clamp_min(1e-6)).clamp(0, 1)
     return torch.cat([straight, a[..., None]], -1)
 
 
@@ -317,11 +317,11 @@ def render_texture_reference(style: GaussianScene, content: GaussianScene, out_d
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
         save_element_frame(style, cam, out_dir, i)
         if i == 0:
-            save_png(out_dir / "key_00_rgb.png", to_uint8(m["rgb"]))
-            cu = closeup_camera(cam, fragment_pixel(m["alpha"]), cfg.closeup_zoom, cfg.closeup_size)
+            save_png(out_dir / "key_00_rgb.png", to_uint8(m.rgb))
+            cu = closeup_camera(cam, fragment_pixel(m.alpha), cfg.closeup_zoom, cfg.closeup_size)
     m = render_maps(style, cu, cfg)
-    save_png(out_dir / "closeup_rgb.png", to_uint8(m["rgb"]))
-    save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m["normal"], m["alpha"])))
+    save_png(out_dir / "closeup_rgb.png", to_uint8(m.rgb))
+    save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m.normal, m.alpha)))
     info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "s0": s0, "element_length": element_length,
             "config": asdict(cfg), "cameras": camera_dicts(cams + [cu])}
     write_json(out_dir / "render.json", info)

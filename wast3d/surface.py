@@ -171,7 +171,7 @@ def _visible_in(scene: GaussianScene, cam, tol: float, radius: float) -> torch.T
 
     r = rasterize(scene, cam)
     idx, u, v, z = _pixels_of(scene.means, cam)
-    ok = (r["alpha"][v, u] > 0.5) & ((z - r["depth"][v, u]).abs() < tol * radius)
+    ok = (r.alpha[v, u] > 0.5) & ((z - r.depth[v, u]).abs() < tol * radius)
     seen = torch.zeros(len(scene), dtype=torch.bool)
     seen[idx[ok]] = True
     return seen
@@ -238,7 +238,7 @@ def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_
     for cam in fit_orbit(s, views, resolution, elevations_deg=elevations_deg):
         ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
         out = rasterize(s, cam, colors=ones)
-        (w,) = torch.autograd.grad(out["rgb"][..., 0].sum(), ones)
+        (w,) = torch.autograd.grad(out.rgb[..., 0].sum(), ones)
         V = cam.world_to_cam.to(s.means)
         z = (s.means @ V[2, :3] + V[2, 3]).double()
         f = w[:, 0].double().cpu() * (z / cam.fx) ** 2 / alone.clamp_min(1e-30)
@@ -333,17 +333,17 @@ def backprojected_pixels(scene: GaussianScene, views: int, resolution: int,
     for cam in cams:
         m = render_maps(scene, cam, cfg)
         ray = pixel_rays(cam)
-        facing = -(m["normal"].double() * ray).sum(-1) / ray.norm(dim=-1)
+        facing = -(m.normal.double() * ray).sum(-1) / ray.norm(dim=-1)
         # solid pixels of surfaces within 60 degrees of facing the camera: at a silhouette and at grazing
         # views the expected depth mixes surfaces (each Gaussian draws all its pixels at its centre's depth)
-        fg = (m["alpha"] > 0.9) & (facing > 0.5)
-        P = (ray * m["depth"].double()[..., None])[fg]
+        fg = (m.alpha > 0.9) & (facing > 0.5)
+        P = (ray * m.depth.double()[..., None])[fg]
         V = cam.world_to_cam.double()
         R, t = V[:3, :3], V[:3, 3]
         pts.append((P - t) @ R)  # camera -> world: R^T (p - t)
-        cols.append(m["rgb"].double()[fg] / m["alpha"].double()[fg][:, None])  # straight colour (black background)
-        nrms.append(m["normal"].double()[fg] @ R)
-        maps.append((m["depth"].double(), m["alpha"] > 0.9))
+        cols.append(m.rgb.double()[fg] / m.alpha.double()[fg][:, None])  # straight colour (black background)
+        nrms.append(m.normal.double()[fg] @ R)
+        maps.append((m.depth.double(), m.alpha > 0.9))
     if not pts or sum(len(p) for p in pts) == 0:
         raise ValueError("back-projection: no view shows any of the scene")
     P, C, N = torch.cat(pts), torch.cat(cols).clamp(0, 1), torch.cat(nrms)
