@@ -433,6 +433,40 @@ def test_flow_parts_on_gentle_reliefs_only(caplog):
         StylizeConfig(parts_max_aspect=-1.0)
 
 
+def test_relief_basins_keep_elements_of_any_size_whole():
+    """parts_shape relief: one part per dome of the top surface, bordered by the crevices. On the
+    labelled procedural styles the median element has >= 95 % of its Gaussians in one basin, and there
+    are about as many basins as elements; the stones (elements larger than a relief length) are cut by
+    k-means parts of 0.8 L (median < 70 %). A bowl-shaped bend does not change that, and flow_parts
+    returns the basins under parts_shape relief."""
+    import numpy as np
+
+    from wast3d.procedural import style_scene
+    from wast3d.registration import relief, relief_basins
+    from wast3d.stylize import StylizeConfig, flow_parts, style_parts
+
+    def whole(part, el):  # the median over elements of the share of its Gaussians in its largest part
+        return float(np.median([np.bincount(part[el == e]).max() / (el == e).sum() for e in np.unique(el[el > 0])]))
+
+    for name in ("pebbles", "stones"):
+        s = style_scene(name, 10000)
+        el, L = s.element.numpy(), relief(s.means).length
+        b = relief_basins(s.means, "z", L)
+        assert b.shape == (len(s),) and b.dtype == torch.int64 and int(b.min()) == 0
+        n_el, n_b = len(np.unique(el[el > 0])), len(torch.unique(b))
+        assert int(b.max()) + 1 == n_b and 0.7 < n_b / n_el < 1.4, (name, n_b, n_el)
+        assert whole(b.numpy(), el) >= 0.93, name
+        bent = s.means.clone()
+        bent[:, 2] += 0.1 * (bent[:, 0] ** 2 + bent[:, 1] ** 2)
+        assert whole(relief_basins(bent, "z", L).numpy(), el) >= 0.93, name
+        if name == "stones":
+            assert whole(b.numpy(), el) >= 0.95
+            assert whole(style_parts(s.means, s.rgb, "z", 0.8 * L, 3.0).numpy(), el) < 0.7
+            assert torch.equal(flow_parts(s, "z", StylizeConfig(parts_shape="relief")), b)
+    with pytest.raises(ValueError, match="relief length"):
+        relief_basins(s.means, "z", 0.0)
+
+
 def test_rigid_parts_recover_a_turn_and_move_whole():
     """parts_motion: rigid: a part's step is its Gaussians' best rigid motion (weighted Kabsch): an exact
     turn plus shift of one part and a shift of another are reproduced, noise is projected away, and in

@@ -69,6 +69,7 @@ BLUR_UNITS = ("cluster", "scene")
 MASSES = ("uniform", "area", "style-area")
 SMOOTH_AXES = ("all", "up")
 PART_MOTIONS = ("translation", "rigid")
+PART_SHAPES = ("kmeans", "relief")
 
 
 @dataclass
@@ -129,6 +130,10 @@ class StylizeConfig:
     parts: float = option(0.8, "piecewise-rigid flow: the style cut into parts this many style relief lengths across "
                                "(k-means on position and colour), each moving as one, so that elements made of many "
                                "Gaussians move whole (0: off)", minimum=0)
+    parts_shape: str = option("kmeans", "how the style is cut into parts: kmeans (of one size, parts relief lengths "
+                                        "across, on position and colour) or relief (the watershed basins of its top "
+                                        "surface: one part per dome, whatever its size, bordered by the crevices; "
+                                        "parts > 0 turns them on)", enum=PART_SHAPES)
     parts_colour: float = option(3.0, "the colour's weight in the parts' k-means (features [xyz / part size, "
                                       "parts_colour * rgb]): part borders follow colour edges such as a pebble's rim",
                                       minimum=0)
@@ -317,7 +322,7 @@ def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | N
     freely: ``parts`` 0, a style without relief, or a steep one (relief aspect above ``parts_max_aspect``:
     blades or strands longer than a part, which turning parts as one would tear: docs/measurements.md).
     Says which, and why, in the log."""
-    from .registration import relief
+    from .registration import relief, relief_basins
 
     if cfg.parts <= 0:
         return None
@@ -331,11 +336,16 @@ def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | N
                  "parts_max_aspect %.3g (elements longer than a relief length: blades, strands)", rel.aspect,
                  cfg.parts_max_aspect)
         return None
-    size = cfg.parts * rel.length
-    part = style_parts(style.means, style.rgb, up, size, cfg.parts_colour)
+    if cfg.parts_shape == "relief":
+        part = relief_basins(style.means, up, rel.length)
+        how = f"the relief's basins (relief length {rel.length:.4g})"
+    else:
+        size = cfg.parts * rel.length
+        part = style_parts(style.means, style.rgb, up, size, cfg.parts_colour)
+        how = f"k-means parts of {size:.4g} across"
     counts = torch.bincount(part)
-    log.info("stylize: relief aspect %.3g <= %.3g: %d parts of %.4g across (median %d Gaussians) move as one (%s)",
-             rel.aspect, cfg.parts_max_aspect, len(counts), size, int(counts.median()), cfg.parts_motion)
+    log.info("stylize: relief aspect %.3g <= %.3g: %d parts, %s (median %d Gaussians), move as one (%s)",
+             rel.aspect, cfg.parts_max_aspect, len(counts), how, int(counts.median()), cfg.parts_motion)
     return part
 
 
