@@ -435,7 +435,8 @@ def test_flow_parts_on_gentle_reliefs_only(caplog):
 
 def test_relief_basins_keep_elements_of_any_size_whole():
     """parts_shape relief: one part per dome of the top surface, bordered by the crevices. On the
-    labelled procedural styles the median element has >= 95 % of its Gaussians in one basin, and there
+    labelled procedural styles the median element has >= 90 % of its Gaussians in one basin (whole),
+    a basin's element Gaussians are >= 85 % of one element on average (elements not merged), and there
     are about as many basins as elements; the stones (elements larger than a relief length) are cut by
     k-means parts of 0.8 L (median < 70 %). A bowl-shaped bend does not change that, and flow_parts
     returns the basins under parts_shape relief."""
@@ -448,6 +449,10 @@ def test_relief_basins_keep_elements_of_any_size_whole():
     def whole(part, el):  # the median over elements of the share of its Gaussians in its largest part
         return float(np.median([np.bincount(part[el == e]).max() / (el == e).sum() for e in np.unique(el[el > 0])]))
 
+    def pure(part, el):  # the mean over parts of the share of their element Gaussians in one element
+        m = el > 0
+        return float(np.mean([np.bincount(el[m][part[m] == p]).max() / (part[m] == p).sum() for p in np.unique(part[m])]))
+
     for name in ("pebbles", "stones"):
         s = style_scene(name, 10000)
         el, L = s.element.numpy(), relief(s.means).length
@@ -455,10 +460,10 @@ def test_relief_basins_keep_elements_of_any_size_whole():
         assert b.shape == (len(s),) and b.dtype == torch.int64 and int(b.min()) == 0
         n_el, n_b = len(np.unique(el[el > 0])), len(torch.unique(b))
         assert int(b.max()) + 1 == n_b and 0.7 < n_b / n_el < 1.4, (name, n_b, n_el)
-        assert whole(b.numpy(), el) >= 0.93, name
+        assert whole(b.numpy(), el) >= 0.9 and pure(b.numpy(), el) >= 0.85, name
         bent = s.means.clone()
         bent[:, 2] += 0.1 * (bent[:, 0] ** 2 + bent[:, 1] ** 2)
-        assert whole(relief_basins(bent, "z", L).numpy(), el) >= 0.93, name
+        assert whole(relief_basins(bent, "z", L).numpy(), el) >= 0.9, name
         if name == "stones":
             assert whole(b.numpy(), el) >= 0.95
             assert whole(style_parts(s.means, s.rgb, "z", 0.8 * L, 3.0).numpy(), el) < 0.7

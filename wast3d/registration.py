@@ -256,18 +256,19 @@ def top_surface(uvw: np.ndarray, lo, cell: float, shape: tuple[int, int]):
     return H, filled, ij
 
 
-def relief_basins(style: torch.Tensor, up, length: float, cells: int = 6, smooth: float = 0.1) -> torch.Tensor:
+def relief_basins(style: torch.Tensor, up, length: float, cells: int = 8, smooth: float = 0.1) -> torch.Tensor:
     """style [M, 3] (a patch), its up, its relief length L -> [M] int64 ids of the relief's basins: one
     per dome of the top surface, bordered by the crevices between them (a watershed).
 
     The top surface (:func:`top_surface`) on a raster of ``cells`` cells per L, empty cells given
     their nearest filled cell's height, smoothed by a Gaussian of ``smooth`` L; every cell climbs to
     its highest neighbour (of 8) until none is higher, and the cells that reach one top make one
-    basin; each point takes its cell's basin. Unlike parts of one size (:func:`wast3d.stylize.
-    style_parts`), a basin follows its element whatever its size: on the demo's trained stones
-    (elements 0.83-0.88 L across) 14 basins for 14 stones, the median stone with 99.7 % of its
-    Gaussians in one (k-means parts of 0.8 L: 73 %); trained pebbles 98.5 % (94 %), 49 basins for
-    60 pebbles (docs/measurements.md, session 20)."""
+    basin; each point takes its cell's basin. Unlike parts of one size
+    (:func:`wast3d.stylize.style_parts`), a basin follows its element whatever its size: on the
+    demo's trained stones (elements 0.83-0.88 L across) 19 basins for 14 stones, the median stone with
+    99.2 % of its Gaussians in one (k-means parts of 0.8 L: 73 %); on the trained pebbles 58 basins
+    for 60 pebbles, 97.6 % (94 %) (docs/measurements.md, session 20). Its scale is L's: where L is
+    off, basins merge elements (L is fragile on some patches, same place)."""
     from scipy import ndimage
 
     if not length > 0:
