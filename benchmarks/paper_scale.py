@@ -17,8 +17,8 @@ accurate than the paper's geomloss solve; the demo's 1e-3 costs about 2.6x at th
 ``--previous REV`` compares two implementations side by side in one run: this checkout's HEAD and
 revision REV each run every stage after pretraining (surface, clusters, the style scene, registration,
 selection, eq. 9, rescale) from nothing, in a git worktree of its own, on the same pretrained lego
-(this checkout's ``results/scenes/lego``, hard-linked in; the workflow runs with ``--rerun-triggers
-mtime`` so neither re-trains it), one after the other; the table gains a ``version`` column and each
+(a copy of this checkout's ``results/scenes/lego``; the workflow runs with ``--rerun-triggers mtime``
+so neither re-trains it), one after the other; the table gains a ``version`` column and each
 stage's time ratio REV / HEAD. Commit first: HEAD is what runs.
 
 Writes ``results/benchmarks/paper_scale.{csv,png}``.
@@ -99,7 +99,7 @@ def version_rows(root: Path, sizes: list[int], log_dir: Path, run: bool, env: di
 
 def worktree_rows(rev: str, sizes: list[int], log_dir: Path) -> list[dict]:
     """:func:`version_rows` of revision ``rev``, run from nothing after pretraining in a temporary worktree
-    given this checkout's pretrained lego (hard links: every stage writes a new file, never in place)."""
+    given a copy of this checkout's pretrained lego."""
     import os
     import shutil
     import tempfile
@@ -116,9 +116,9 @@ def worktree_rows(rev: str, sizes: list[int], log_dir: Path) -> list[dict]:
             (wt.parent / "shared").symlink_to(ROOT.parent / "shared")  # the lego's images beside the worktree
             dst = wt / "results" / "scenes" / "lego"
             dst.mkdir(parents=True)
-            for f in given:
+            for f in given:  # copies, newer than the lego's images: the mtime trigger keeps them
                 if (lego / f).exists():
-                    os.link(lego / f, dst / f)
+                    shutil.copy(lego / f, dst / f)
             (wt / "results" / "benchmarks" / "rules").mkdir(parents=True)
             shutil.copy2(ROOT / "results" / "benchmarks" / "rules" / "pretrain_lego.tsv",
                          wt / "results" / "benchmarks" / "rules")
