@@ -116,7 +116,7 @@ def worktree_rows(rev: str, sizes: list[int], log_dir: Path) -> list[dict]:
             (wt.parent / "shared").symlink_to(ROOT.parent / "shared")  # the lego's images beside the worktree
             dst = wt / "results" / "scenes" / "lego"
             dst.mkdir(parents=True)
-            for f in given:  # copies, newer than the lego's images: the mtime trigger keeps them
+            for f in given:
                 if (lego / f).exists():
                     shutil.copy(lego / f, dst / f)
             (wt / "results" / "benchmarks" / "rules").mkdir(parents=True)
@@ -128,7 +128,10 @@ def worktree_rows(rev: str, sizes: list[int], log_dir: Path) -> list[dict]:
             rows = version_rows(wt, sizes, sub, True, env, ("--rerun-triggers", "mtime"))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
-    return [{"version": rev, **r} for r in rows]
+    # the workflow there still resumes pretraining from the copied checkpoint (nothing left to train;
+    # Snakemake finds the lego's images newer), so its row is that resume, not the training
+    resumed = "pretrain (lego, resumed from the given checkpoint)"
+    return [{"version": rev, **r, **({"stage": resumed} if r["stage"].startswith("pretrain") else {})} for r in rows]
 
 
 def main() -> None:
