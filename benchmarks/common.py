@@ -3,12 +3,32 @@
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "results" / "benchmarks"
+
+
+@contextmanager
+def worktree(rev: str, prefix: str = "wast3d-prev-"):
+    """A temporary git worktree of revision ``rev`` with ``../shared`` (the real data) beside it, as
+    beside this checkout; yields its path and removes it after. Run its code with ``PYTHONPATH`` set
+    to it (``python -m`` from its root imports it too)."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix=prefix) as td:
+        wt = Path(td) / "tree"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(wt), rev], check=True,
+                       capture_output=True)
+        try:
+            (wt.parent / "shared").symlink_to(ROOT.parent / "shared")
+            yield wt
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
 
 
 def rss_mb(field: str = "VmRSS") -> float:

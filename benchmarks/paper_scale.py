@@ -36,7 +36,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT  # noqa: E402
+from common import OUT, worktree  # noqa: E402
 
 def style_name(n: int) -> str:
     return "pebbles_1m" if n == 1_000_000 else f"pebbles_{n // 1000}k"
@@ -102,32 +102,23 @@ def worktree_rows(rev: str, sizes: list[int], log_dir: Path) -> list[dict]:
     given a copy of this checkout's pretrained lego."""
     import os
     import shutil
-    import tempfile
 
     lego = ROOT / "results" / "scenes" / "lego"
     given = ["scene.ply", "pretrain_log.csv", "pretrain_eval.json", "pretrain.ckpt"]
     if not all((lego / f).exists() for f in given[:3]):
         sys.exit(f"--previous needs the pretrained lego in {lego} (run config/paper_scale.yaml once)")
-    with tempfile.TemporaryDirectory(prefix="wast3d-paper-") as td:
-        wt = Path(td) / "tree"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(wt), rev], check=True,
-                       capture_output=True)
-        try:
-            (wt.parent / "shared").symlink_to(ROOT.parent / "shared")  # the lego's images beside the worktree
-            dst = wt / "results" / "scenes" / "lego"
-            dst.mkdir(parents=True)
-            for f in given:
-                if (lego / f).exists():
-                    shutil.copy(lego / f, dst / f)
-            (wt / "results" / "benchmarks" / "rules").mkdir(parents=True)
-            shutil.copy2(ROOT / "results" / "benchmarks" / "rules" / "pretrain_lego.tsv",
-                         wt / "results" / "benchmarks" / "rules")
-            sub = log_dir / rev.replace("/", "_")
-            sub.mkdir(parents=True, exist_ok=True)
-            env = {**os.environ, "PYTHONPATH": str(wt)}
-            rows = version_rows(wt, sizes, sub, True, env, ("--rerun-triggers", "mtime"))
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
+    with worktree(rev, prefix="wast3d-paper-") as wt:
+        dst = wt / "results" / "scenes" / "lego"
+        dst.mkdir(parents=True)
+        for f in given:
+            if (lego / f).exists():
+                shutil.copy(lego / f, dst / f)
+        (wt / "results" / "benchmarks" / "rules").mkdir(parents=True)
+        shutil.copy2(ROOT / "results" / "benchmarks" / "rules" / "pretrain_lego.tsv", wt / "results" / "benchmarks" / "rules")
+        sub = log_dir / rev.replace("/", "_")
+        sub.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, "PYTHONPATH": str(wt)}
+        rows = version_rows(wt, sizes, sub, True, env, ("--rerun-triggers", "mtime"))
     # the workflow there still resumes pretraining from the copied checkpoint (nothing left to train;
     # Snakemake finds the lego's images newer), so its row is that resume, not the training
     resumed = "pretrain (lego, resumed from the given checkpoint)"

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, ROOT  # noqa: E402
+from common import OUT, ROOT, worktree  # noqa: E402
 
 LEGO = ROOT.parent / "shared" / "data" / "nerf_synthetic_lego_200"
 
@@ -35,19 +35,12 @@ def previous_rows(a):
 
     import pandas as pd
 
-    with tempfile.TemporaryDirectory(prefix="wast3d-prev-") as td:
-        wt = Path(td) / "tree"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(wt), a.previous], check=True,
-                       capture_output=True)
-        try:
-            (wt.parent / "shared").symlink_to(ROOT.parent / "shared")  # the lego beside the worktree
-            subprocess.run([sys.executable, "benchmarks/pretrain.py", "lego", "--iterations", str(a.iterations),
-                            "--eval-every", str(a.eval_every), "--sh-degree", str(a.sh_degree),
-                            "--max-gaussians", str(a.max_gaussians)], cwd=wt, check=True,
-                           env={**os.environ, "PYTHONPATH": str(wt)})
-            prev = pd.read_csv(wt / "results" / "benchmarks" / "pretrain.csv")
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
+    with worktree(a.previous) as wt:
+        subprocess.run([sys.executable, "benchmarks/pretrain.py", "lego", "--iterations", str(a.iterations),
+                        "--eval-every", str(a.eval_every), "--sh-degree", str(a.sh_degree),
+                        "--max-gaussians", str(a.max_gaussians)], cwd=wt, check=True,
+                       env={**os.environ, "PYTHONPATH": str(wt)})
+        prev = pd.read_csv(wt / "results" / "benchmarks" / "pretrain.csv")
     prev["version"] = a.previous  # its own run labelled itself "current"
     return prev
 
