@@ -230,6 +230,16 @@ class Relief:
         return self.height / self.length
 
 
+# The level the autocorrelation profile crosses for the relief length, and the ratio of that crossing to
+# the zero crossing on packed elements (docs/measurements.md, session 21): a profile that hovers at
+# +-0.01-0.04 (a field of independent blades, one patch of pebbles) crosses zero where its noise does.
+RELIEF_LEVEL = 0.05
+RELIEF_LEVEL_RATIO = 0.92
+# A steep element (a blade) is longer up than across: its length is at least this many RMS top heights
+# (3.7: the demo's grass keeps the length 0.33 it was tuned at, session 21).
+RELIEF_HEIGHT_FACTOR = 3.7
+
+
 def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> float:
     """The style's relief length (:func:`relief`). style: [M, 3] -> L, in its units."""
     return relief(style, grid, q, up).length
@@ -304,8 +314,8 @@ def relief_basins(style: torch.Tensor, up, length: float, cells: int = 8, smooth
 
 def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Relief:
     """The style's relief (:class:`Relief`). style: [M, 3] (a patch: ground with elements on it) -> its
-    relief length L, twice the first zero crossing of the radial autocorrelation of its top-surface height
-    field, and the RMS height h of that field, both in its units.
+    relief length L, about twice the first zero crossing of the radial autocorrelation of its top-surface
+    height field, and the RMS height h of that field, both in its units.
 
     The patch's plane is its two largest principal axes, its normal the third, oriented to the patch's
     up (``up``, :func:`patch_frame`); on a ``grid`` x ``grid`` raster of the
@@ -315,15 +325,27 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
     plane's coordinates is removed from h: a patch's bend or bowl is its shape, not its relief, and
     a few percent of it keep A(r) above 0 far beyond the elements (the demo's trained grass: 1.34
     with the mean removed only, against 0.39 for the grass it was trained from; 0.32 detrended).
+    The profile A(r) / A(0) is read where it first falls below ``RELIEF_LEVEL`` (0.05), r_0.05, and
+    L = 2 r_0.05 / ``RELIEF_LEVEL_RATIO`` (0.92, the ratio of the two crossings on packed elements,
+    where the profile has a negative lobe: the procedural pebbles, stones and weave, 0.90-0.94 over
+    four seeds each), so that L keeps the zero crossing's values there. The zero crossing itself
+    is noise where the profile hovers near 0 beyond the elements: independent blades (no negative
+    lobe) crossed at 0.18-0.33 over four seeds and at 0.55 on the trained grass (their width at
+    0.05: 0.09-0.12; their L: the height bound below); one
+    patch of pebbles (seed 1, +0.01-0.04 from 11 to 23 cells) at 0.78 against 0.30-0.35, now 0.34.
     A field of bumps of width w decorrelates at about w / 2: L = 2 r_0 is about an element's width
     (procedural pebbles 0.31 and stones 0.53 in units where their labelled diameters are 0.21 and
     0.45; a weave's 0.087 at a period of 0.17). The demo's trained pebbles: 1.65 raw (floaters), 0.37
     cleaned (surface.clean_style): clean first.
 
+    A steep element is longer up than across: L is at least ``RELIEF_HEIGHT_FACTOR`` (3.7) h. On the
+    blades this bound is L (0.32-0.33 over four seeds, 0.47 on the trained grass); on the weave it
+    and the width agree (0.083-0.088); on pebbles and stones it is far below the width.
+
     The aspect h / L says whether the elements are about L in every direction: a gentle relief (domes,
-    boulders: 0.08-0.11 on the demo's pebbles and stones, procedural and trained) has elements about
-    L wide; a steep one (blades: 0.23-0.27; a weave: 0.27-0.34) has elements far longer than L along
-    some direction (up for a blade, along the strand for a weave)."""
+    boulders: 0.08-0.13 on the demo's pebbles and stones, procedural and trained) has elements about
+    L wide; a steep one (blades, a weave: 0.26-0.27, at most 1 / 3.7) has elements far longer than L
+    across along some direction (up for a blade, along the strand for a weave)."""
     if len(style) < 16:
         raise ValueError(f"relief length: {len(style)} style points (need at least 16)")
     c, axes = patch_frame(style, up)
@@ -341,11 +363,12 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
     r = np.hypot(f[:, None], f[None, :]).round().astype(np.int64).ravel()
     prof = np.bincount(r, acf.ravel() / acf[0, 0])[:grid] / np.maximum(np.bincount(r)[:grid], 1)
     height = float(np.sqrt(acf[0, 0]))
-    if not (prof < 0).any():
+    below = prof < RELIEF_LEVEL
+    if not below.any():
         return Relief(2.0 * grid * cell, height)
-    k = int(np.argmax(prof < 0))  # the first crossing, linearly between the radii k - 1 and k
-    r0 = k - 1 + prof[k - 1] / (prof[k - 1] - prof[k])
-    return Relief(2.0 * r0 * cell, height)
+    k = int(np.argmax(below))  # the first crossing, linearly between the radii k - 1 and k
+    r0 = k - 1 + (prof[k - 1] - RELIEF_LEVEL) / (prof[k - 1] - prof[k])
+    return Relief(max(2.0 * r0 * cell / RELIEF_LEVEL_RATIO, RELIEF_HEIGHT_FACTOR * height), height)
 
 
 def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConfig) -> tuple[float, dict]:
