@@ -235,9 +235,9 @@ class Relief:
 # +-0.01-0.04 (a field of independent blades, one patch of pebbles) crosses zero where its noise does.
 RELIEF_LEVEL = 0.05
 RELIEF_LEVEL_RATIO = 0.92
-# A steep element (a blade) is longer up than across: its length is at least this many RMS top heights
-# (3.7: the demo's grass keeps the length 0.33 it was tuned at, session 21).
-RELIEF_HEIGHT_FACTOR = 3.7
+# A steep element (a blade) is longer up than across: its length is at least this many interquartile
+# ranges of the top heights (2.0: the demo's grass keeps the length 0.33 it was tuned at, session 21).
+RELIEF_HEIGHT_FACTOR = 2.0
 
 
 def relief_length(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> float:
@@ -331,21 +331,22 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
     four seeds each), so that L keeps the zero crossing's values there. The zero crossing itself
     is noise where the profile hovers near 0 beyond the elements: independent blades (no negative
     lobe) crossed at 0.18-0.33 over four seeds and at 0.55 on the trained grass (their width at
-    0.05: 0.09-0.12; their L: the height bound below); one
+    0.05: 0.09-0.12; their L, from the height bound below: 0.32-0.33 and 0.41); one
     patch of pebbles (seed 1, +0.01-0.04 from 11 to 23 cells) at 0.78 against 0.30-0.35, now 0.34.
     A field of bumps of width w decorrelates at about w / 2: L = 2 r_0 is about an element's width
     (procedural pebbles 0.31 and stones 0.53 in units where their labelled diameters are 0.21 and
     0.45; a weave's 0.087 at a period of 0.17). The demo's trained pebbles: 1.65 raw (floaters), 0.37
     cleaned (surface.clean_style): clean first.
 
-    A steep element is longer up than across: L is at least ``RELIEF_HEIGHT_FACTOR`` (3.7) h. On the
-    blades this bound is L (0.32-0.33 over four seeds, 0.47 on the trained grass); on the weave it
-    and the width agree (0.083-0.088); on pebbles and stones it is far below the width.
+    A steep element is longer up than across: L is at least ``RELIEF_HEIGHT_FACTOR`` (2.0) times the
+    interquartile range of the top heights (not h: a trained patch's stray tops weigh in an RMS; the
+    trained grass's h is 1.43x its source's, its range 1.22x). On the blades this bound is L; on the
+    weave it and the width are about equal; on pebbles and stones it is far below the width.
 
     The aspect h / L says whether the elements are about L in every direction: a gentle relief (domes,
     boulders: 0.08-0.13 on the demo's pebbles and stones, procedural and trained) has elements about
-    L wide; a steep one (blades, a weave: 0.26-0.27, at most 1 / 3.7) has elements far longer than L
-    across along some direction (up for a blade, along the strand for a weave)."""
+    L wide; a steep one (blades, a weave: 0.26-0.34) has elements far longer than L across along some
+    direction (up for a blade, along the strand for a weave)."""
     if len(style) < 16:
         raise ValueError(f"relief length: {len(style)} style points (need at least 16)")
     c, axes = patch_frame(style, up)
@@ -368,7 +369,8 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
         return Relief(2.0 * grid * cell, height)
     k = int(np.argmax(below))  # the first crossing, linearly between the radii k - 1 and k
     r0 = k - 1 + (prof[k - 1] - RELIEF_LEVEL) / (prof[k - 1] - prof[k])
-    return Relief(max(2.0 * r0 * cell / RELIEF_LEVEL_RATIO, RELIEF_HEIGHT_FACTOR * height), height)
+    iqr = float(np.subtract(*np.quantile(H[filled], [0.75, 0.25])))  # robust to a trained patch's stray tops
+    return Relief(max(2.0 * r0 * cell / RELIEF_LEVEL_RATIO, RELIEF_HEIGHT_FACTOR * iqr), height)
 
 
 def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConfig) -> tuple[float, dict]:

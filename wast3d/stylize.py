@@ -143,7 +143,7 @@ class StylizeConfig:
     parts_max_aspect: float = option(0.16, "parts only on a style whose relief aspect (RMS height of its top surface "
                                            "over its relief length) is at most this: elements about a relief length in "
                                            "every direction (pebbles, boulders: 0.08-0.13), not blades or a weave (0.26-"
-                                           "0.27), which rigid parts would tear; a large value: parts on "
+                                           "0.34), which rigid parts would tear; a large value: parts on "
                                            "every style", minimum=0)
     sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
 
