@@ -278,7 +278,7 @@ def relief_basins(style: torch.Tensor, up, length: float, cells: int = 8, smooth
     demo's trained stones (elements 0.83-0.88 L across) 19 basins for 14 stones, the median stone with
     99.2 % of its Gaussians in one (k-means parts of 0.8 L: 73 %); on the trained pebbles 58 basins
     for 60 pebbles, 97.6 % (94 %) (docs/measurements.md, session 20). Its scale is L's: where L is
-    off, basins merge elements (L is fragile on some patches, same place)."""
+    off, basins merge elements."""
     from scipy import ndimage
 
     if not length > 0:
@@ -312,10 +312,12 @@ def relief_basins(style: torch.Tensor, up, length: float, cells: int = 8, smooth
     return torch.from_numpy(ids.reshape(-1).astype(np.int64))
 
 
-def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Relief:
+def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z", level: float = RELIEF_LEVEL,
+           level_ratio: float = RELIEF_LEVEL_RATIO, height_factor: float = RELIEF_HEIGHT_FACTOR) -> Relief:
     """The style's relief (:class:`Relief`). style: [M, 3] (a patch: ground with elements on it) -> its
-    relief length L, about twice the first zero crossing of the radial autocorrelation of its top-surface
-    height field, and the RMS height h of that field, both in its units.
+    relief length L, read from the radial autocorrelation of its top-surface height field (below), and
+    the RMS height h of that field, both in its units. ``level`` 0, ``level_ratio`` 1 and
+    ``height_factor`` 0 give the zero crossing used before session 21 (benchmarks/relief_length.py).
 
     The patch's plane is its two largest principal axes, its normal the third, oriented to the patch's
     up (``up``, :func:`patch_frame`); on a ``grid`` x ``grid`` raster of the
@@ -325,8 +327,8 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
     plane's coordinates is removed from h: a patch's bend or bowl is its shape, not its relief, and
     a few percent of it keep A(r) above 0 far beyond the elements (the demo's trained grass: 1.34
     with the mean removed only, against 0.39 for the grass it was trained from; 0.32 detrended).
-    The profile A(r) / A(0) is read where it first falls below ``RELIEF_LEVEL`` (0.05), r_0.05, and
-    L = 2 r_0.05 / ``RELIEF_LEVEL_RATIO`` (0.92, the ratio of the two crossings on packed elements,
+    The profile A(r) / A(0) is read where it first falls below ``level`` (0.05), r_0.05, and
+    L = 2 r_0.05 / ``level_ratio`` (0.92, the ratio of the two crossings on packed elements,
     where the profile has a negative lobe: the procedural pebbles, stones and weave, 0.90-0.94 over
     four seeds each), so that L keeps the zero crossing's values there. The zero crossing itself
     is noise where the profile hovers near 0 beyond the elements: independent blades (no negative
@@ -338,7 +340,7 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
     0.45; a weave's 0.087 at a period of 0.17). The demo's trained pebbles: 1.65 raw (floaters), 0.37
     cleaned (surface.clean_style): clean first.
 
-    A steep element is longer up than across: L is at least ``RELIEF_HEIGHT_FACTOR`` (2.0) times the
+    A steep element is longer up than across: L is at least ``height_factor`` (2.0) times the
     interquartile range of the top heights (not h: a trained patch's stray tops weigh in an RMS; the
     trained grass's h is 1.43x its source's, its range 1.22x). On the blades this bound is L; on the
     weave it and the width are about equal; on pebbles and stones it is far below the width.
@@ -364,13 +366,13 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z") -> Rel
     r = np.hypot(f[:, None], f[None, :]).round().astype(np.int64).ravel()
     prof = np.bincount(r, acf.ravel() / acf[0, 0])[:grid] / np.maximum(np.bincount(r)[:grid], 1)
     height = float(np.sqrt(acf[0, 0]))
-    below = prof < RELIEF_LEVEL
+    below = prof < level
     if not below.any():
         return Relief(2.0 * grid * cell, height)
     k = int(np.argmax(below))  # the first crossing, linearly between the radii k - 1 and k
-    r0 = k - 1 + (prof[k - 1] - RELIEF_LEVEL) / (prof[k - 1] - prof[k])
+    r0 = k - 1 + (prof[k - 1] - level) / (prof[k - 1] - prof[k])
     iqr = float(np.subtract(*np.quantile(H[filled], [0.75, 0.25])))  # robust to a trained patch's stray tops
-    return Relief(max(2.0 * r0 * cell / RELIEF_LEVEL_RATIO, RELIEF_HEIGHT_FACTOR * iqr), height)
+    return Relief(max(2.0 * r0 * cell / level_ratio, height_factor * iqr), height)
 
 
 def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConfig) -> tuple[float, dict]:
