@@ -34,9 +34,9 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, worktree  # noqa: E402
+from common import OUT, ROOT, worktree  # noqa: E402
+
 
 def style_name(n: int) -> str:
     return "pebbles_1m" if n == 1_000_000 else f"pebbles_{n // 1000}k"

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import pandas as pd
@@ -29,17 +28,8 @@ from common import OUT, ROOT  # noqa: E402
 STYLES = ("pebbles", "stones", "grass", "wicker")
 
 
-@contextmanager
-def zero_crossing():
-    """registration.relief as before session 21: the first zero crossing, no height bound."""
-    from wast3d import registration as R
-
-    saved = R.RELIEF_LEVEL, R.RELIEF_LEVEL_RATIO, R.RELIEF_HEIGHT_FACTOR
-    R.RELIEF_LEVEL, R.RELIEF_LEVEL_RATIO, R.RELIEF_HEIGHT_FACTOR = 0.0, 1.0, 0.0
-    try:
-        yield
-    finally:
-        R.RELIEF_LEVEL, R.RELIEF_LEVEL_RATIO, R.RELIEF_HEIGHT_FACTOR = saved
+# registration.relief as before session 21: the first zero crossing, no height bound
+RULES = {"now": {}, "zero_crossing": {"level": 0.0, "level_ratio": 1.0, "height_factor": 0.0}}
 
 
 def patches(seeds: int):
@@ -73,13 +63,9 @@ def main() -> None:
     rows = []
     for name, source, seed, n, means in patches(a.seeds):
         row = {"style": name, "source": source, "seed": seed, "gaussians": n}
-        for rule, ctx in (("now", None), ("zero_crossing", zero_crossing())):
+        for rule, kw in RULES.items():
             t = time.perf_counter()
-            if ctx is None:
-                r = relief(means)
-            else:
-                with ctx:
-                    r = relief(means)
+            r = relief(means, **kw)
             row |= {f"L_{rule}": r.length, f"aspect_{rule}": r.aspect, f"s_{rule}": time.perf_counter() - t}
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
@@ -93,7 +79,7 @@ def main() -> None:
     for name in STYLES:
         s = seeds[seeds["style"] == name]
         line = [f"{name:8s}"]
-        for rule in ("zero_crossing", "now"):
+        for rule in reversed(RULES):
             line.append(f"{rule}: seeds {s[f'L_{rule}'].max() / s[f'L_{rule}'].min():.2f}")
             t = df[(df["style"] == name) & (df.source != "procedural")]
             if len(t):
