@@ -170,3 +170,22 @@ def test_stylize_clusters_together_equals_one_at_a_time(opt):
         assert torch.allclose(together[k].colour_offset, alone.colour_offset, rtol=1e-5, atol=1e-6), k
         assert together[k].losses == pytest.approx(alone.losses, rel=1e-6, abs=1e-9), k
         assert not torch.allclose(together[k].positions, pr.y_pos)  # it moved
+
+
+@pytest.mark.parametrize("opt", [dict(optimizer="flow", lr=0.2), dict(loss="arap", optimizer="flow", lr=0.05)])
+def test_flow_steps_equal_torch_sgd(opt, monkeypatch):
+    """The flow's plain descent (stylize._Descent) gives torch.optim.SGD's results to the last bit."""
+    import wast3d.stylize as stylize
+
+    g = torch.Generator().manual_seed(7)
+    pairs = [stylize.ClusterPair(torch.rand(n, 3, generator=g) + k, torch.rand(n, 3, generator=g),
+                                 torch.rand(m, 3, generator=g) * 1.2 + k, torch.rand(m, 3, generator=g), 0.3)
+             for k, (n, m) in enumerate([(50, 70), (20, 25)])]
+    cfg = stylize.StylizeConfig(iterations=5, **opt)
+    ours = stylize.stylize_clusters(pairs, cfg)
+    monkeypatch.setattr(stylize, "_Descent", torch.optim.SGD)
+    sgd = stylize.stylize_clusters(pairs, cfg)
+    for a, b, pr in zip(ours, sgd, pairs):
+        assert torch.equal(a.positions, b.positions) and torch.equal(a.colour_offset, b.colour_offset)
+        assert a.losses == b.losses
+        assert (a.positions - pr.y_pos).abs().max() > 1e-3  # it moved

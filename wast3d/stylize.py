@@ -411,6 +411,27 @@ def stylize_cluster(x_pos: torch.Tensor, x_rgb: torch.Tensor, y_pos: torch.Tenso
     return stylize_clusters([ClusterPair(x_pos, x_rgb, y_pos, y_rgb, cfg.sinkhorn.blur)], cfg)[0]
 
 
+class _Descent:
+    """Plain gradient descent, ``p <- p - lr * p.grad`` per parameter group: torch.optim.SGD's step at its
+    defaults (no momentum, no weight decay), without its first use importing torch._dynamo (about 2 s
+    of every stylize process)."""
+
+    def __init__(self, groups: list[dict]):
+        self.param_groups = groups
+
+    def zero_grad(self, set_to_none: bool = True):
+        for g in self.param_groups:
+            for p in g["params"]:
+                p.grad = None
+
+    @torch.no_grad()
+    def step(self):
+        for g in self.param_groups:
+            for p in g["params"]:
+                if p.grad is not None:
+                    p.add_(p.grad, alpha=-g["lr"])
+
+
 def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False,
                      up: torch.Tensor | None = None) -> list[ClusterResult]:
     """Terms of eq. 9 optimized together: one packed (ragged) Sinkhorn solve per step over all of them
@@ -452,7 +473,7 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     # Sinkhorn gradient flow, y_j <- y_j - lr * M * dS/dy_j = y_j - lr * (y_j - T(y_j)) with T the
     # (debiased, blurred) transport target: a displacement field smooth at the scale gamma, so that
     # the style's elements move as wholes
-    opt = torch.optim.Adam(groups) if cfg.optimizer == "adam" else torch.optim.SGD(groups)
+    opt = torch.optim.Adam(groups) if cfg.optimizer == "adam" else _Descent(groups)
     # the flow's step is the gradient over each row's mass: 1 / b_j (M of its cluster when uniform)
     flow = (m.to(dev, dt)[yid] if b is None else 1.0 / b)[:, None] if cfg.optimizer == "flow" else None
     losses: list[list[float]] = [[] for _ in pairs]
