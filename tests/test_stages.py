@@ -126,6 +126,38 @@ def test_rules_pass_every_default_so_a_changed_default_reruns_the_stage():
         resolved_params("stylize", {"features": "bogus"})
 
 
+def test_resolved_params_are_remembered_per_block_and_package(tmp_path, monkeypatch):
+    """resolved_params_cached: the same parameters as resolved_params, read back from its file without
+    resolving again (nothing imported); another package fingerprint or block resolves anew; a bad block
+    raises and leaves no file."""
+    import json
+
+    from wast3d import stages
+
+    ref = stages.resolved_params("stylize", {"lr": 0.1})
+    got = stages.resolved_params_cached("stylize", {"lr": 0.1}, tmp_path, "f1")
+    assert json.dumps(got, sort_keys=True) == json.dumps(ref, sort_keys=True)
+    assert len(list(tmp_path.glob("stylize-*.json"))) == 1
+    stages._RESOLVED.clear()  # a new process: only the file remains
+    calls = []
+    monkeypatch.setattr(stages, "resolved_params", lambda c, p: calls.append((c, p)) or {"new": 1})
+    assert stages.resolved_params_cached("stylize", {"lr": 0.1}, tmp_path, "f1") == got and not calls
+    assert stages.resolved_params_cached("stylize", {"lr": 0.1}, tmp_path, "f2") == {"new": 1}
+    assert stages.resolved_params_cached("stylize", {"lr": 0.2}, tmp_path, "f1") == {"new": 1}
+    assert len(calls) == 2
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="stylize.features"):
+        stages.resolved_params_cached("stylize", {"features": "bogus"}, tmp_path, "f1")
+    assert len(list(tmp_path.glob("stylize-*.json"))) == 3 and not list(tmp_path.glob(".*"))
+    pkg = Path(stages.__file__).parent
+    assert stages.package_fingerprint(pkg) == stages.package_fingerprint(pkg)
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "a.py").write_text("X = 1\n")
+    before = stages.package_fingerprint(tmp_path / "pkg")
+    (tmp_path / "pkg" / "a.py").write_text("X = 2\n")  # a changed default
+    assert stages.package_fingerprint(tmp_path / "pkg") != before
+
+
 def test_an_option_is_declared_once_and_reaches_the_schema_and_its_checks():
     """option(): the field's help and allowed values give its schema node (type from the annotation) and
     its construction check; the workflow's schema is exactly what config_docs makes from them."""

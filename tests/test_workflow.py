@@ -247,6 +247,19 @@ def test_caching_reruns_only_what_a_change_affects(tiny_run):
     snake(tiny_run, "-n", config=copy.deepcopy(base))  # restore the config file
 
 
+def test_a_parse_with_known_blocks_imports_no_torch(tiny_run, monkeypatch):
+    """Dry runs and every cluster job parse the workflow again. With each stage's block resolved before
+    (the run, remembered under .snakemake/wast3d-params), the parse imports neither torch nor any stage
+    module, and finds nothing to do."""
+    monkeypatch.setenv("PYTHONPROFILEIMPORTTIME", "1")
+    r = snake(tiny_run, "-n", config=tiny_config(tiny_run))
+    imported = set(re.findall(r"^import time:.*\|\s+([\w.]+)$", r.stderr, re.M))
+    assert "snakemake" in imported and "jsonschema" in imported  # the import log is read
+    assert "torch" not in imported and not [m for m in imported if m.split(".")[0] == "wast3d"]
+    assert jobs(r) == {}
+    assert len(list((tiny_run / ".snakemake" / "wast3d-params").glob("*.json"))) >= 10
+
+
 def test_sweep_runs_each_variant_in_its_own_folder(tiny_run):
     r = snake(tiny_run, "-n", "--config", "sweep=abl", config=tiny_config(tiny_run))
     j = jobs(r)

@@ -262,6 +262,49 @@ def resolved_params(command: str, params: dict | None) -> dict:
     return out
 
 
+def package_fingerprint(package_dir: str | Path) -> str:
+    """A digest of every ``.py`` file under ``package_dir`` (relative path and bytes). The stages'
+    defaults live in their dataclasses and the constants beside them, so any edit of the package gives
+    a new fingerprint."""
+    import hashlib
+
+    root = Path(package_dir)
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*.py")):
+        h.update(p.relative_to(root).as_posix().encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def resolved_params_cached(command: str, params: dict | None, cache_dir: str | Path, fingerprint: str) -> dict:
+    """:func:`resolved_params`, remembered in ``cache_dir``: one JSON file per command, parameter block
+    and package fingerprint (:func:`package_fingerprint`). Snakemake parses the workflow again for every
+    dry run and inside every cluster job, and resolving imports the stages' modules and torch with them
+    (about 2.5 s); a remembered block imports nothing. A block the dataclass rejects is never stored, so
+    it fails on every parse. Written to a temporary file and renamed (jobs may parse at once)."""
+    import hashlib
+    import json
+    import os
+    import tempfile
+
+    key = hashlib.sha256(json.dumps([fingerprint, command, params], sort_keys=True).encode()).hexdigest()[:24]
+    path = Path(cache_dir) / f"{command}-{key}.json"
+    if str(path) not in _RESOLVED:
+        try:
+            _RESOLVED[str(path)] = json.loads(path.read_text())
+        except (OSError, ValueError):
+            out = resolved_params(command, params)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+            with os.fdopen(fd, "w") as fh:
+                json.dump(out, fh, sort_keys=True)
+            os.replace(tmp, path)
+            _RESOLVED[str(path)] = json.loads(json.dumps(out))
+    return json.loads(json.dumps(_RESOLVED[str(path)]))  # a copy: the caller may change it
+
+
+_RESOLVED: dict[str, dict] = {}  # resolved_params_cached's files already read in this process
+
+
 # ---- artifact paths ---------------------------------------------------------------------------------
 
 # Where the workflow keeps each artifact, relative to its results folder, with Snakemake's wildcards:

@@ -2,6 +2,7 @@
 stages each scene needs (logged when a stage is left out)."""
 
 import copy
+import importlib.util
 import os
 import json
 import shlex
@@ -162,7 +163,10 @@ def stage_params(command, block):
     default of its dataclass filled in (wast3d/stages.py: resolved_params), so that a changed default
     re-runs the stage like a changed key does, and a bad block stops the workflow when it is built."""
     if _RESOLVE_DEFAULTS:
-        return stage_json(_DECLARATIONS.resolved_params(command, block))
+        try:
+            return stage_json(_DECLARATIONS.resolved_params_cached(command, block, _PARAMS_CACHE, _FINGERPRINT))
+        except ImportError as e:  # wast3d found, but not its dependencies (torch) in Snakemake's environment
+            _no_defaults(e)
     return stage_json(block)
 
 
@@ -170,8 +174,6 @@ def _load_stages():
     """The stage declarations that go with these rules, read by path (whatever else is installed): the
     checkout's wast3d/stages.py, or, in a wheel (the workflow is the data package wast3d/_workflow), the
     package's own."""
-    import importlib.util
-
     paths = [os.path.join(workflow.basedir, "wast3d", "stages.py"), os.path.join(workflow.basedir, "..", "stages.py")]
     path = next((p for p in paths if os.path.isfile(p)), None)
     if path is None:
@@ -187,14 +189,25 @@ _DECLARATIONS = _load_stages()
 STAGES = _DECLARATIONS.STAGES
 if os.path.isdir(os.path.join(workflow.basedir, "wast3d")):  # a checkout: its own package, not another install's
     sys.path.insert(0, workflow.basedir)
-try:  # the stages' dataclasses, for their defaults (they import torch)
-    import wast3d.stylize  # noqa: F401
+# the stages' dataclasses give their defaults (wast3d/stages.py: resolved_params); they import torch, so
+# resolved blocks are remembered per package fingerprint under .snakemake (dry runs and cluster jobs
+# parse the workflow again)
+_WAST3D_SPEC = importlib.util.find_spec("wast3d")
+_RESOLVE_DEFAULTS = _WAST3D_SPEC is not None
+_PARAMS_CACHE = os.path.abspath(os.path.join(".snakemake", "wast3d-params"))
+_FINGERPRINT = (_DECLARATIONS.package_fingerprint(_WAST3D_SPEC.submodule_search_locations[0])
+                if _RESOLVE_DEFAULTS else None)
 
-    _RESOLVE_DEFAULTS = True
-except ImportError as _e:
+
+def _no_defaults(why):
+    global _RESOLVE_DEFAULTS
     _RESOLVE_DEFAULTS = False
-    logger.warning(f"wast3d is not importable here ({_e}): the rules pass the config blocks as written, so a "
+    logger.warning(f"wast3d is not importable here ({why}): the rules pass the config blocks as written, so a "
                    "changed default of a stage will not re-run it")
+
+
+if not _RESOLVE_DEFAULTS:
+    _no_defaults("no module named 'wast3d'")
 
 
 def results(name, **wildcards):
