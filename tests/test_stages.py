@@ -149,6 +149,8 @@ def test_resolved_params_are_remembered_per_block_and_package(tmp_path, monkeypa
     with pytest.raises(ValueError, match="stylize.features"):
         stages.resolved_params_cached("stylize", {"features": "bogus"}, tmp_path, "f1")
     assert len(list(tmp_path.glob("stylize-*.json"))) == 3 and not list(tmp_path.glob(".*"))
+    (tmp_path / "file").write_text("")  # a cache folder that cannot be made: resolved all the same
+    assert stages.resolved_params_cached("cluster", {}, tmp_path / "file" / "c", "f1") == stages.resolved_params("cluster", {})
     pkg = Path(stages.__file__).parent
     assert stages.package_fingerprint(pkg) == stages.package_fingerprint(pkg)
     (tmp_path / "pkg").mkdir()

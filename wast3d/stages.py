@@ -293,11 +293,14 @@ def resolved_params_cached(command: str, params: dict | None, cache_dir: str | P
             _RESOLVED[str(path)] = json.loads(path.read_text())
         except (OSError, ValueError):
             out = resolved_params(command, params)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-            with os.fdopen(fd, "w") as fh:
-                json.dump(out, fh, sort_keys=True)
-            os.replace(tmp, path)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+                with os.fdopen(fd, "w") as fh:
+                    json.dump(out, fh, sort_keys=True)
+                os.replace(tmp, path)
+            except OSError:  # a read-only working folder: resolve on every parse, as without the cache
+                pass
             _RESOLVED[str(path)] = json.loads(json.dumps(out))
     return json.loads(json.dumps(_RESOLVED[str(path)]))  # a copy: the caller may change it
 
