@@ -17,6 +17,7 @@ Plain declarations only: this module imports nothing heavy.
 
 from __future__ import annotations
 
+import copy
 import shlex
 from dataclasses import dataclass
 from pathlib import Path
@@ -280,32 +281,28 @@ def resolved_params_cached(command: str, params: dict | None, cache_dir: str | P
     and package fingerprint (:func:`package_fingerprint`). Snakemake parses the workflow again for every
     dry run and inside every cluster job, and resolving imports the stages' modules and torch with them
     (about 2.5 s); a remembered block imports nothing. A block the dataclass rejects is never stored, so
-    it fails on every parse. Written to a temporary file and renamed (jobs may parse at once)."""
+    it fails on every parse. Written through ``io_utils.atomic_path`` (jobs may parse at once)."""
     import hashlib
     import json
-    import os
-    import tempfile
 
     key = hashlib.sha256(json.dumps([fingerprint, command, params], sort_keys=True).encode()).hexdigest()[:24]
     path = Path(cache_dir) / f"{command}-{key}.json"
-    if str(path) not in _RESOLVED:
+    if path not in _RESOLVED:
         try:
-            _RESOLVED[str(path)] = json.loads(path.read_text())
+            _RESOLVED[path] = json.loads(path.read_text())
         except (OSError, ValueError):
-            out = resolved_params(command, params)
+            from wast3d.io_utils import atomic_path  # absolute: the workflow loads this module by path
+
+            _RESOLVED[path] = json.loads(json.dumps(resolved_params(command, params)))
             try:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-                with os.fdopen(fd, "w") as fh:
-                    json.dump(out, fh, sort_keys=True)
-                os.replace(tmp, path)
+                with atomic_path(path) as tmp:
+                    tmp.write_text(json.dumps(_RESOLVED[path], sort_keys=True))
             except OSError:  # a read-only working folder: resolve on every parse, as without the cache
                 pass
-            _RESOLVED[str(path)] = json.loads(json.dumps(out))
-    return json.loads(json.dumps(_RESOLVED[str(path)]))  # a copy: the caller may change it
+    return copy.deepcopy(_RESOLVED[path])  # the caller may change its copy
 
 
-_RESOLVED: dict[str, dict] = {}  # resolved_params_cached's files already read in this process
+_RESOLVED: dict[Path, dict] = {}  # resolved_params_cached's blocks already read or resolved in this process
 
 
 # ---- artifact paths ---------------------------------------------------------------------------------
