@@ -12,6 +12,57 @@ LEGO = ROOT.parent / "shared" / "data" / "nerf_synthetic_lego_200"
 REAL_3DGS = ROOT.parent / "shared" / "data" / "real_3dgs"
 
 
+def slurm_controller_answers() -> bool:
+    """Whether ``scontrol ping`` reaches a SLURM controller (False where SLURM's client is absent, or
+    the controller is down or unconfigured: scontrol then retries for up to a minute, hence the timeout)."""
+    import shutil
+    import subprocess
+
+    if shutil.which("scontrol") is None:
+        return False
+    try:
+        return subprocess.run(["scontrol", "ping"], capture_output=True, timeout=3).returncode == 0
+    except subprocess.TimeoutExpired:
+        return False
+
+
+SCONTROL_STANDIN: dict = {"dir": None}
+
+
+def use_scontrol_standin(on: bool) -> None:
+    """Put the stand-in ``scontrol`` of :func:`_no_wait_on_an_absent_slurm_controller` first on PATH, or
+    take it off (the local SLURM cluster's tests need the real one)."""
+    d = SCONTROL_STANDIN["dir"]
+    if d is None:
+        return
+    parts = [x for x in os.environ["PATH"].split(os.pathsep) if x != d]
+    os.environ["PATH"] = os.pathsep.join(([d] if on else []) + parts)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _no_wait_on_an_absent_slurm_controller(tmp_path_factory):
+    """Snakemake loads its SLURM executor plugin on every start, and the plugin runs ``scontrol show
+    config`` then (10 s timeout): with SLURM's client installed and no controller up (slurm-wlm
+    installed by .ci/run, the local cluster not started) every Snakemake run of the suite waited about
+    9 s for it, 4-5 minutes in all. Where no controller answers, a stand-in ``scontrol`` that fails at
+    once goes first on PATH for the session (the plugin then assumes its defaults, as without SLURM)."""
+    import shutil
+
+    if shutil.which("scontrol") is None or slurm_controller_answers():
+        yield
+        return
+    d = tmp_path_factory.mktemp("scontrol-standin")
+    (d / "scontrol").write_text("#!/bin/sh\necho 'scontrol stand-in (tests/conftest.py): no SLURM controller' >&2\nexit 1\n")
+    (d / "scontrol").chmod(0o755)
+    SCONTROL_STANDIN["dir"] = str(d)
+    use_scontrol_standin(True)
+    try:
+        yield
+    finally:
+        use_scontrol_standin(False)
+        SCONTROL_STANDIN["dir"] = None
+
+
 def real_3dgs(name: str) -> Path:
     """A file of ../shared/data/real_3dgs (see its README); skips the test where it is absent."""
     p = REAL_3DGS / name
