@@ -151,6 +151,20 @@ def test_left_out_what_a_scene_does_not_need(tmp_path):
     assert "scene 'given': left out pretraining (a trained 3DGS PLY is given)" in log
 
 
+def test_a_style_outside_pairs_is_cleaned_as_in_them(tmp_path):
+    """A target for a pair that `pairs` does not list (merged configs: the last file's `pairs` wins) gets
+    the style cleaned as it would be in a listed pair, not the raw import (which once fed registration
+    an imported style's floaters and haze without a word)."""
+    from wast3d.ply import write_ply
+    from wast3d.procedural import make_scene
+
+    write_ply(tmp_path / "given.ply", make_scene("style", "pebbles", 800))
+    cfg = copy.deepcopy(TINY)
+    cfg["scenes"]["given"] = {"source": "ply", "path": str(tmp_path / "given.ply")}
+    r = snake(tmp_path, "-n", "-p", "results/register/blob__given/default/registration.npz", config=cfg)
+    assert "results/scenes/given/style.ply" in r.stdout and jobs(r).get("style_clean") == 1, r.stdout[-2000:]
+
+
 def tiny_config(wd: Path) -> dict:
     """TINY with CLIP from a tiny random open_clip model saved in the work folder."""
     from conftest import write_tiny_clip

@@ -140,10 +140,10 @@ STYLES = sorted({s for _, s in PAIRS + TABLE1_PAIRS})
 
 def needs_style_clean(scene):
     """Trained and imported styles are cleaned (stage 2 for a style) unless style_clean.enabled is false;
-    a style with labels_from always goes through the rule (its labels are attached there)."""
+    a style with labels_from always goes through the rule (its labels are attached there). Asked of a
+    scene in a style's place, listed in `pairs` or not: a target of a pair outside `pairs` (a
+    benchmark's, or one merged config's pair under another's `pairs`) gets the same cleaned style."""
     s = SCENES[scene]
-    if scene not in STYLES:
-        return False
     return bool(s.get("labels_from")) or (s["source"] != "procedural" and s.get("style_clean", {}).get("enabled", True))
 
 
