@@ -393,22 +393,20 @@ def local_slurm():
     if shutil.which("slurmctld") is None or shutil.which("sbatch") is None:
         pytest.skip("no SLURM on this machine (apt-get install -y slurm-wlm munge; see docs/install.md)")
     script = ROOT / "scripts/local_slurm.sh"
-    if subprocess.run([script, "status"], capture_output=True).returncode == 0:
-        use_scontrol_standin(False)
+    use_scontrol_standin(False)  # the cluster's tests talk to the real controller
+    try:
+        if subprocess.run([script, "status"], capture_output=True).returncode == 0:
+            yield
+            return
+        if os.geteuid() != 0:
+            pytest.skip("the local SLURM cluster is not running and starting it needs root (sudo scripts/local_slurm.sh start)")
+        r = subprocess.run([script, "start"], capture_output=True, text=True)
+        assert r.returncode == 0, r.stdout + r.stderr
         try:
             yield
         finally:
-            use_scontrol_standin(True)
-        return
-    if os.geteuid() != 0:
-        pytest.skip("the local SLURM cluster is not running and starting it needs root (sudo scripts/local_slurm.sh start)")
-    use_scontrol_standin(False)  # the cluster's tests talk to the real controller
-    r = subprocess.run([script, "start"], capture_output=True, text=True)
-    assert r.returncode == 0, r.stdout + r.stderr
-    try:
-        yield
+            subprocess.run([script, "stop"], capture_output=True)
     finally:
-        subprocess.run([script, "stop"], capture_output=True)
         use_scontrol_standin(True)
 
 
