@@ -472,6 +472,45 @@ def test_relief_basins_keep_elements_of_any_size_whole():
         relief_basins(s.means, "z", 0.0)
 
 
+def test_auto_parts_take_the_basins_where_kmeans_cuts_the_domes():
+    """parts_shape auto (the default): dome_share is the median share of a basin's Gaussians in its
+    largest part (1 for the basins themselves, 0.5 for a cut that halves each basin). On the labelled
+    procedural styles (two seeds) the k-means parts keep the pebbles' domes (>= 0.65: flow_parts
+    returns the k-means parts) and cut the stones' (< 0.65: it returns the basins), and the choice
+    is the right one by the labels: the chosen parts keep the median element more whole than the
+    other cut."""
+    import numpy as np
+
+    from wast3d.procedural import style_scene
+    from wast3d.registration import relief, relief_basins
+    from wast3d.stylize import StylizeConfig, dome_share, flow_parts, style_parts
+
+    def whole(part, el):  # the median over elements of the share of its Gaussians in its largest part
+        return float(np.median([np.bincount(part[el == e]).max() / (el == e).sum() for e in np.unique(el[el > 0])]))
+
+    b = torch.arange(40) // 10
+    assert dome_share(b, b) == 1.0
+    assert dome_share(b, torch.arange(40) // 5) == 0.5
+    assert dome_share(b, b, min_size=11) == 1.0  # no basin that large
+    cfg = StylizeConfig()
+    assert cfg.parts_shape == "auto"
+    for name in ("pebbles", "stones"):
+        for seed in (0, 1):
+            s = style_scene(name, 10000, seed)
+            el, L = s.element.numpy(), relief(s.means).length
+            basins = relief_basins(s.means, "z", L)
+            kmeans = style_parts(s.means, s.rgb, "z", cfg.parts * L, cfg.parts_colour)
+            cut = dome_share(basins, kmeans)
+            chosen = flow_parts(s, "z", cfg)
+            if name == "pebbles":
+                assert cut >= cfg.parts_dome_cut and torch.equal(chosen, kmeans), (seed, cut)
+                assert whole(kmeans.numpy(), el) >= whole(basins.numpy(), el) - 0.02, seed
+            else:
+                assert cut < cfg.parts_dome_cut and torch.equal(chosen, basins), (seed, cut)
+                assert whole(basins.numpy(), el) > whole(kmeans.numpy(), el) + 0.2, seed
+    assert torch.equal(flow_parts(s, "z", StylizeConfig(parts_shape="kmeans")), kmeans)
+
+
 def test_rigid_parts_recover_a_turn_and_move_whole():
     """parts_motion: rigid: a part's step is its Gaussians' best rigid motion (weighted Kabsch): an exact
     turn plus shift of one part and a shift of another are reproduced, noise is projected away, and in
