@@ -332,7 +332,7 @@ def dome_share(basins: torch.Tensor, part: torch.Tensor, min_size: int = 8) -> f
     elements that colour does not tell apart; they then tear in the flow (``element_intact``: the
     trained stones 0.70 with k-means parts, 0.94 with the basins), while on the pebbles the k-means
     parts do better (trained pebbles on the lego: 0.84 against 0.74). The basins stand in for the
-    elements where no labels exist: 22 style scenes of both (docs/measurements.md, session 24) read 0.48-0.60
+    elements where no labels exist: 24 style scenes of both (benchmarks/dome_share.py) read 0.48-0.60
     on the stones and 0.69-0.80 on the pebbles."""
     b, p = basins.long(), part.long()
     counts = torch.bincount(b * (int(p.max()) + 1) + p)  # Gaussians per (basin, part)
