@@ -31,6 +31,18 @@ def worktree(rev: str, prefix: str = "wast3d-prev-"):
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
 
 
+def write_rows(rows: list[dict], out: Path):
+    """The benchmark's rows as a DataFrame, written to ``out`` as CSV (a temporary file, renamed)."""
+    import pandas as pd
+
+    df = pd.DataFrame(rows)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    df.to_csv(tmp, index=False)
+    tmp.replace(out)
+    return df
+
+
 def rss_mb(field: str = "VmRSS") -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith(field):

@@ -20,10 +20,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, ROOT  # noqa: E402
+from common import OUT, ROOT, write_rows  # noqa: E402
 
 FAMILIES = ("pebbles", "stones")
 TRAINED = ("_trained", "_s05", "_s20", "_s40")
@@ -74,11 +73,7 @@ def main() -> None:
                 row[f"q25_{name}"] = whole(part.numpy(), el, 0.25)
         rows.append(row)
         print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    df = pd.DataFrame(rows)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = a.out.with_suffix(".tmp")
-    df.to_csv(tmp, index=False)
-    tmp.replace(a.out)
+    df = write_rows(rows, a.out)
     print(f"\nparts_dome_cut {cfg.parts_dome_cut}:")
     for family in FAMILIES:
         d = df[df.family == family]

@@ -20,10 +20,9 @@ import sys
 import time
 from pathlib import Path
 
-import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, ROOT  # noqa: E402
+from common import OUT, ROOT, write_rows  # noqa: E402
 
 STYLES = ("pebbles", "stones", "grass", "wicker")
 
@@ -69,11 +68,7 @@ def main() -> None:
             row |= {f"L_{rule}": r.length, f"aspect_{rule}": r.aspect, f"s_{rule}": time.perf_counter() - t}
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    df = pd.DataFrame(rows)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = a.out.with_suffix(".tmp")
-    df.to_csv(tmp, index=False)
-    tmp.replace(a.out)
+    df = write_rows(rows, a.out)
     seeds = df[(df.source == "procedural") & (df.gaussians == 30000)]
     print("\nspread over seeds (max / min of L), and trained copy / source (seed 0):")
     for name in STYLES:
