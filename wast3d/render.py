@@ -38,14 +38,18 @@ def save_preview(scene: GaussianScene, path: str | Path, n_views: int = 4, size:
     save_png(path, grid(imgs, n_views))
 
 
+EXPORT_ELEVATIONS = (15.0, 35.0, 55.0)
+
+
 @torch.no_grad()
 def export_blender(scene: GaussianScene, root: str | Path, n_views: int = 48, size: int = 200,
-                   holdout_views: int = 0) -> None:
-    """Render ``scene`` from orbit cameras into a Blender-format posed image set (train split).
+                   holdout_views: int = 0, elevations: tuple[float, ...] = EXPORT_ELEVATIONS) -> None:
+    """Render ``scene`` from orbit cameras into a Blender-format posed image set (train split): ``n_views``
+    cameras cycling through ``elevations`` (degrees above the scene's horizon).
 
     The renders are on a transparent background (RGBA with straight alpha), as NeRF-Synthetic.
     """
-    cams = fit_orbit(scene, n_views, size, elevations_deg=(15.0, 35.0, 55.0), phase_deg=7.0)
+    cams = fit_orbit(scene, n_views, size, elevations_deg=tuple(elevations), phase_deg=7.0)
     outs = render_views(scene, cams, background=(0.0, 0.0, 0.0))
     write_blender(root, cams, [o.rgb for o in outs], [o.alpha for o in outs])
 
