@@ -791,3 +791,51 @@ def test_smoothing_where_the_parts_are_left_out(caplog):
         assert same != smoothed, name
         assert ("displacement smoothing within" in caplog.text) == smoothed, name
         assert ("displacement smoothing left out" in caplog.text) != smoothed, name
+
+
+def test_dilation_grows_each_covariance_by_c2_identity_and_closes_gaps():
+    """dilate_gaussians: Sigma' = Sigma + c^2 I with c = amount x the median nearest-neighbour distance,
+    means, rotations, opacities and labels kept; a layer of small opaque Gaussians with gaps between
+    them lets the background through seen from above, and dilated by 3 spacings it does not."""
+    from wast3d.cameras import Camera, look_at, fov_to_focal
+    from wast3d.rasterizer import rasterize
+    from wast3d.surface import dilate_gaussians
+
+    g = torch.Generator().manual_seed(0)
+    xy = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 21), torch.linspace(-1, 1, 21), indexing="ij"), -1)
+    means = torch.cat([xy.reshape(-1, 2), torch.zeros(441, 1)], 1)  # spacing 0.1
+    scales = torch.tensor([0.02, 0.015, 0.005]).expand(441, 3) * (1 + 0.2 * torch.rand(441, 1, generator=g))
+    quats = torch.nn.functional.normalize(torch.randn(441, 4, generator=g), dim=1)
+    s = GaussianScene.from_activated(means, scales, quats, 0.99)
+    s.element = torch.arange(441)
+    out, c = dilate_gaussians(s, 0.5)
+    assert c == pytest.approx(0.05)
+    assert torch.allclose(out.covariances - s.covariances, c * c * torch.eye(3).expand(441, 3, 3), atol=1e-6)
+    assert torch.equal(out.means, s.means) and torch.equal(out.opacity_logits, s.opacity_logits)
+    assert torch.equal(out.quats, s.quats) and torch.equal(out.element, s.element)
+    assert torch.equal(dilate_gaussians(s, 0.0)[0].log_scales, s.log_scales)
+    f = fov_to_focal(0.7, 128)
+    cam = Camera(look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)), f, f, 64, 64, 128, 128)
+    inner = slice(32, 96)
+    alpha = lambda sc: rasterize(sc, cam).alpha[inner, inner]  # noqa: E731
+    assert float(alpha(s).min()) < 0.2  # the gaps show through
+    assert float(alpha(dilate_gaussians(s, 3.0)[0]).min()) > 0.95
+
+
+def test_style_cleaning_dilates_when_asked(tmp_path):
+    """The style stage with dilate 1 grows every kept Gaussian and reports by how much; by default it
+    leaves the scales as trained."""
+    import json
+
+    from wast3d.pipeline import run_style_clean
+    from wast3d.ply import read_ply, write_ply
+    from wast3d.procedural import style_scene
+
+    write_ply(tmp_path / "s.ply", style_scene("pebbles", 3000))
+    for name, extra in (("d", {"dilate": 1.0}), ("k", {})):
+        run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / f"{name}.ply", out_json=tmp_path / f"{name}.json",
+                        params={"visibility": False, **extra})
+    d, k = read_ply(tmp_path / "d.ply"), read_ply(tmp_path / "k.ply")
+    c = json.loads((tmp_path / "d.json").read_text())["dilated_by"]
+    assert c > 0 and "dilated_by" not in json.loads((tmp_path / "k.json").read_text())
+    assert torch.equal(d.means, k.means) and (d.log_scales > k.log_scales).all()

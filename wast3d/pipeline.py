@@ -56,6 +56,10 @@ def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict,
         from .surface import recolour_outliers
 
         out, report["recoloured_colour_outliers"] = recolour_outliers(out, cfg.colour_k, cfg.recolour)
+    if cfg.dilate > 0:
+        from .surface import dilate_gaussians
+
+        out, report["dilated_by"] = dilate_gaussians(out, cfg.dilate)
     if out.element is not None:
         report["element_share_of_gaussians"] = float((out.element > 0).double().mean())
     write_ply(out_ply, out)

@@ -145,6 +145,10 @@ class StyleCleanConfig:
                                   "neighbours' median colour instead of going: positions, relief and labels stay (0: "
                                   "off)", minimum=0)
     colour_k: int = option(16, "neighbours of the colour-outlier test", minimum=1)
+    dilate: float = option(0.0, "each kept Gaussian's variance grows by (dilate x the kept Gaussians' median "
+                                "nearest-neighbour distance)^2 on every axis, opacity kept: a trained surface of "
+                                "small Gaussians closes where its gaps let what lies behind show through (0: off)",
+                           minimum=0)
     seed: int = option(0, "seed")
 
     def __post_init__(self):
@@ -586,6 +590,22 @@ def _colour_outliers(scene: GaussianScene, keep: torch.Tensor, k: int, limit: fl
     out = torch.zeros_like(keep)
     out[idx[dev > limit]] = True
     _drop(keep, out, report, "removed_colour_outliers")
+
+
+def dilate_gaussians(scene: GaussianScene, amount: float) -> tuple[GaussianScene, float]:
+    """``scene`` with every covariance R S^2 R^T grown to R (S^2 + c^2 I) R^T, c = ``amount`` x the median
+    nearest-neighbour distance of its means (each axis s_i -> sqrt(s_i^2 + c^2), rotation and opacity
+    kept), and c. A trained scene's Gaussians were fitted with the rasterizer's screen-space dilation at
+    its training views' pixel size; seen closer, that dilation shrinks with the pixels and the gaps
+    between small Gaussians open (Yu et al., Mip-Splatting, CVPR 2024); growing each Gaussian in 3D
+    keeps them closed at any zoom."""
+    if len(scene) < 2 or amount <= 0:
+        return scene, 0.0
+    c = amount * float(knn(scene.means.detach(), scene.means.detach(), 1, exclude_self=True)[0].median())
+    out = scene.clone()
+    with torch.no_grad():
+        out.log_scales.copy_(0.5 * torch.log(torch.exp(2 * scene.log_scales.detach()) + c * c))
+    return out, c
 
 
 def recolour_outliers(scene: GaussianScene, k: int, limit: float) -> tuple[GaussianScene, int]:
