@@ -1,0 +1,127 @@
+"""How much of each style element a result's element copies hold, against the clusters' size.
+
+    python benchmarks/element_copies.py PAIR[:METHOD] ... [--out results/benchmarks/element_copies.csv]
+
+Reads what the workflow wrote for each pair (``results/{scenes,partition,register,stylize,render}``;
+METHOD defaults to ``default``, its partition is the part after the first ``_``: ``default_c2`` ->
+``c2``). A *copy* is the Gaussians of one style element selected by one cluster
+(:func:`wast3d.elements.copy_ids`), which ``element_intact`` compares with itself in the collage: a
+copy cut to a sliver at its cluster's edge scores as intact as a whole element. Here each copy is
+compared with its element in the style: its *completeness* is its Gaussians over the element's. Per
+pair: the median completeness over element Gaussians, the share of them in copies that hold at least
+half and at least 0.8 of their element, and the median cluster span, the in-plane RMS diameter (twice
+the RMS distance to the cluster's centre over its two widest axes) of the content's clusters over the
+element length on the content (``element_length`` of the texture reference: the style's relief length
+/ s0). Writes the CSV and, per pair, ``element_copies_PAIR_METHOD.png``: the result's first key view
+and its close-up with each copy in its own colour and the ground black, beside the close-up in RGB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import OUT, ROOT, write_rows  # noqa: E402
+
+RESULTS = ROOT / "results"
+
+
+def first(*paths: Path) -> Path:
+    for p in paths:
+        if p.exists():
+            return p
+    raise FileNotFoundError(f"none of {', '.join(map(str, paths))} exists: run the pair through the workflow first")
+
+
+def cluster_span(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """[K] in-plane RMS diameter of each cluster: 2 sqrt(l1 + l2), l1 >= l2 >= l3 its covariance's eigenvalues."""
+    out = []
+    for k in np.unique(labels):
+        p = points[labels == k]
+        p = p - p.mean(0)
+        ev = np.sort(np.linalg.eigvalsh(p.T @ p / len(p)))[::-1]
+        out.append(2 * np.sqrt(ev[0] + ev[1]))
+    return np.asarray(out)
+
+
+def completeness(style_element: np.ndarray, selected: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """Per element Gaussian of a result: the share of its style element that its copy holds.
+    style_element [M] labels of the style; selected [N] style index of each result Gaussian; clusters [N]."""
+    el = style_element[selected]
+    m = el > 0
+    base = int(el.max()) + 1
+    copies, inv, cnt = np.unique(clusters[m].astype(np.int64) * base + el[m], return_inverse=True, return_counts=True)
+    return (cnt / np.bincount(style_element)[copies % base])[inv]
+
+
+def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> None:
+    from PIL import Image
+
+    from wast3d.cameras import Camera
+    from wast3d.elements import copy_ids
+    from wast3d.rasterizer import rasterize
+
+    cid = copy_ids(result.element, torch.from_numpy(clusters))
+    _, inv = torch.unique(cid, return_inverse=True)
+    colours = torch.rand(int(inv.max()) + 1, 3, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.2
+    col = colours[inv].to(result.means.dtype)
+    col[cid < 0] = 0.0
+    cams = json.loads(render_json.read_text())["cameras"]
+    tiles = []
+    for c, colors in ((cams[0], col), (cams[-1], col), (cams[-1], None)):
+        cam = Camera(torch.tensor(c["world_to_cam"], dtype=torch.float32), c["fx"], c["fy"], c["cx"], c["cy"],
+                     c["width"], c["height"])
+        m = rasterize(result, cam, background=(1.0, 1.0, 1.0), colors=colors)
+        tiles.append(Image.fromarray((m.rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)).resize((384, 384)))
+    sheet = Image.new("RGB", (384 * len(tiles), 384))
+    for k, t in enumerate(tiles):
+        sheet.paste(t, (384 * k, 0))
+    tmp = out.with_suffix(".tmp.png")
+    sheet.save(tmp)
+    tmp.replace(out)
+
+
+def measure(pair: str, method: str, out_dir: Path) -> dict:
+    from wast3d.formats import read_scene
+
+    content, style = pair.split("__")
+    partition = method.split("_", 1)[1] if "_" in method else "default"
+    s = read_scene(first(RESULTS / f"scenes/{style}/style.ply", RESULTS / f"scenes/{style}/scene.ply"))
+    if s.element is None:
+        raise ValueError(f"{style}: the style has no element labels")
+    selected = np.load(RESULTS / f"register/{pair}/{partition}/selection.npz")["indices"]
+    st = np.load(RESULTS / f"stylize/{pair}/{method}/stylize.npz")
+    comp = completeness(s.element.numpy(), selected, st["labels"])
+    points = read_scene(first(RESULTS / f"scenes/{content}/surface.ply", RESULTS / f"scenes/{content}/scene.ply")).means
+    cl = np.load(RESULTS / f"partition/{content}/{partition}/clusters.npz")["labels"]
+    length = json.loads((RESULTS / f"render/texture_reference/{pair}/render.json").read_text())["element_length"]
+    span = cluster_span(points.double().numpy(), cl) / length
+    result = read_scene(RESULTS / f"stylize/{pair}/{method}/final.ply")
+    copy_picture(result, st["labels"], RESULTS / f"render/pairs/{pair}/{method}/render.json",
+                 out_dir / f"element_copies_{pair}_{method}.png")
+    return {"pair": pair, "method": method, "clusters": len(span), "cluster_span_median": float(np.median(span)),
+            "complete_median": float(np.median(comp)), "complete_0.5": float((comp >= 0.5).mean()),
+            "complete_0.8": float((comp >= 0.8).mean())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("pairs", nargs="+", help="PAIR[:METHOD], e.g. guitar__stones_s20:default_c2")
+    ap.add_argument("--out", type=Path, default=OUT / "element_copies.csv")
+    a = ap.parse_args()
+    rows = []
+    for item in a.pairs:
+        pair, _, method = item.partition(":")
+        rows.append(measure(pair, method or "default", a.out.parent))
+        print(" ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in rows[-1].items()), flush=True)
+    write_rows(rows, a.out)
+
+
+if __name__ == "__main__":
+    main()
