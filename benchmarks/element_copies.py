@@ -1,10 +1,9 @@
 """How much of each style element a result's element copies hold, against the clusters' size.
 
-    python benchmarks/element_copies.py PAIR[:METHOD] ... [--out results/benchmarks/element_copies.csv]
+    python benchmarks/element_copies.py PAIR[:METHOD[:PARTITION]] ... [--out results/benchmarks/element_copies.csv]
 
-Reads what the workflow wrote for each pair (``results/{scenes,partition,register,stylize,render}``;
-METHOD defaults to ``default``, its partition is the part after the first ``_``: ``default_c2`` ->
-``c2``). A *copy* is the Gaussians of one style element selected by one cluster
+Reads what the workflow wrote for each pair (its artifacts, :func:`wast3d.stages.artifact`; METHOD and
+PARTITION, the method's partition as its experiment declares it, default to ``default``). A *copy* is the Gaussians of one style element selected by one cluster
 (:func:`wast3d.elements.copy_ids`), which ``element_intact`` compares with itself in the collage: a
 copy cut to a sliver at its cluster's edge scores as intact as a whole element. Here each copy is
 compared with its element in the style: its *completeness* is its Gaussians over the element's. Per
@@ -87,23 +86,25 @@ def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> 
     tmp.replace(out)
 
 
-def measure(pair: str, method: str, out_dir: Path) -> dict:
+def measure(pair: str, method: str, partition: str, out_dir: Path) -> dict:
     from wast3d.formats import read_scene
+    from wast3d.stages import artifact
 
     content, style = pair.split("__")
-    partition = method.split("_", 1)[1] if "_" in method else "default"
-    s = read_scene(first(RESULTS / f"scenes/{style}/style.ply", RESULTS / f"scenes/{style}/scene.ply"))
+    at = dict(content=content, style=style, method=method, partition=partition)
+    s = read_scene(first(Path(artifact("style", RESULTS, scene=style)), Path(artifact("scene", RESULTS, scene=style))))
     if s.element is None:
         raise ValueError(f"{style}: the style has no element labels")
-    selected = np.load(RESULTS / f"register/{pair}/{partition}/selection.npz")["indices"]
-    st = np.load(RESULTS / f"stylize/{pair}/{method}/stylize.npz")
+    selected = np.load(artifact("selection", RESULTS, **at))["indices"]
+    st = np.load(artifact("stylize_npz", RESULTS, **at))
     comp = completeness(s.element.numpy(), selected, st["labels"])
-    points = read_scene(first(RESULTS / f"scenes/{content}/surface.ply", RESULTS / f"scenes/{content}/scene.ply")).means
-    cl = np.load(RESULTS / f"partition/{content}/{partition}/clusters.npz")["labels"]
-    length = json.loads((RESULTS / f"render/texture_reference/{pair}/render.json").read_text())["element_length"]
+    points = read_scene(first(Path(artifact("surface", RESULTS, scene=content)),
+                              Path(artifact("scene", RESULTS, scene=content)))).means
+    cl = np.load(artifact("clusters", RESULTS, **at))["labels"]
+    length = json.loads((Path(artifact("texture_reference", RESULTS, **at)) / "render.json").read_text())["element_length"]
     span = cluster_span(points.double().numpy(), cl) / length
-    result = read_scene(RESULTS / f"stylize/{pair}/{method}/final.ply")
-    copy_picture(result, st["labels"], RESULTS / f"render/pairs/{pair}/{method}/render.json",
+    result = read_scene(artifact("final", RESULTS, **at))
+    copy_picture(result, st["labels"], Path(artifact("render_pair", RESULTS, **at)) / "render.json",
                  out_dir / f"element_copies_{pair}_{method}.png")
     return {"pair": pair, "method": method, "clusters": len(span), "cluster_span_median": float(np.median(span)),
             "complete_median": float(np.median(comp)), "complete_0.5": float((comp >= 0.5).mean()),
@@ -112,13 +113,13 @@ def measure(pair: str, method: str, out_dir: Path) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("pairs", nargs="+", help="PAIR[:METHOD], e.g. guitar__stones_s20:default_c2")
+    ap.add_argument("pairs", nargs="+", help="PAIR[:METHOD[:PARTITION]], e.g. guitar__stones_s20:default_c2:c2")
     ap.add_argument("--out", type=Path, default=OUT / "element_copies.csv")
     a = ap.parse_args()
     rows = []
     for item in a.pairs:
-        pair, _, method = item.partition(":")
-        rows.append(measure(pair, method or "default", a.out.parent))
+        pair, method, partition = (item.split(":") + ["default", "default"])[:3]
+        rows.append(measure(pair, method, partition, a.out.parent))
         print(" ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in rows[-1].items()), flush=True)
     write_rows(rows, a.out)
 

@@ -32,16 +32,18 @@ ZOOMS = (1.0, 3.0)
 def labelled(name: str):
     from wast3d.elements import transfer_elements
     from wast3d.formats import read_scene
+    from wast3d.stages import artifact
 
+    results = ROOT / "results"
     path, _, source = name.partition(":")
     if path.endswith(".ply"):
         s = read_scene(ROOT / path)
     else:
-        folder = ROOT / "results" / "scenes" / name
-        s = read_scene(folder / "style.ply" if (folder / "style.ply").exists() else folder / "scene.ply")
+        cleaned = Path(artifact("style", results, scene=name))
+        s = read_scene(cleaned if cleaned.exists() else artifact("scene", results, scene=name))
         source = name.split("_")[0]
     if s.element is None:
-        src = read_scene(ROOT / "results" / "scenes" / source / "scene.ply")
+        src = read_scene(artifact("scene", results, scene=source))
         if src.element is None:
             raise ValueError(f"{name}: no element labels, and its source {source} has none")
         s.element = transfer_elements(s.means, src.means, src.element)
