@@ -160,6 +160,12 @@ CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
 STYLE_ELEVATIONS = (15.0, 35.0, 55.0, 80.0)  # a style patch is seen from above (cf. render.export_blender)
 
 
+def median_spacing(points: torch.Tensor) -> float:
+    """The median distance of points [N >= 2, 3] to their nearest other point."""
+    p = points.detach()
+    return float(knn(p, p, 1, exclude_self=True)[0].median())
+
+
 def _pixels_of(points: torch.Tensor, cam) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The points [N, 3] in front of ``cam`` that land inside its image: their indices [n], pixel columns
     u [n], rows v [n] and camera depths z [n]."""
@@ -472,7 +478,7 @@ def surface_points(scene: GaussianScene, cfg: SurfaceConfig) -> tuple[GaussianSc
 
         h = cfg.spacing * scene_bounds(kept)[1]
     else:
-        h = float(knn(kept.means, kept.means, 1, exclude_self=True)[0].median()) if len(kept) > 1 else 1.0
+        h = median_spacing(kept.means) if len(kept) > 1 else 1.0
         h = fused_count_spacing(P, len(kept), h)
     out = fuse_points(P, C, N, h, scene.dtype)
     report.update({"mode": cfg.mode, "spacing": h, "points": len(out), "kept": len(out)})
@@ -601,7 +607,7 @@ def dilate_gaussians(scene: GaussianScene, amount: float) -> tuple[GaussianScene
     keeps them closed at any zoom."""
     if len(scene) < 2 or amount <= 0:
         return scene, 0.0
-    c = amount * float(knn(scene.means.detach(), scene.means.detach(), 1, exclude_self=True)[0].median())
+    c = amount * median_spacing(scene.means)
     out = scene.clone()
     with torch.no_grad():
         out.log_scales.copy_(0.5 * torch.log(torch.exp(2 * scene.log_scales.detach()) + c * c))
