@@ -822,6 +822,40 @@ def test_dilation_grows_each_covariance_by_c2_identity_and_closes_gaps():
     assert float(alpha(dilate_gaussians(s, 3.0)[0]).min()) > 0.95
 
 
+def test_refit_closes_the_gaps_a_removed_second_layer_leaves():
+    """refit_appearance: a top layer of small Gaussians with gaps, whose second layer (offset by half a
+    spacing, underneath) made the patch solid, is fitted alone to the two layers' renders; afterwards it
+    is solid from above as the two were, and its means, rotations and labels have not moved."""
+    from wast3d.cameras import Camera, look_at, fov_to_focal
+    from wast3d.rasterizer import rasterize
+    from wast3d.surface import refit_appearance
+
+    g = torch.Generator().manual_seed(0)
+    xy = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 21), torch.linspace(-1, 1, 21), indexing="ij"), -1)
+    xy = xy.reshape(-1, 2)
+
+    def layer(z, shift, size):  # discs facing up, spacing 0.1
+        means = torch.cat([xy + shift, torch.full((441, 1), z)], 1)
+        scales = torch.tensor([size, size, 0.005]).expand(441, 3) * (1 + 0.2 * torch.rand(441, 1, generator=g))
+        s = GaussianScene.from_activated(means, scales, None, 0.99, rgb=torch.full((441, 3), 0.6))
+        s.element = torch.arange(441)
+        return s
+
+    top = layer(0.05, 0.0, 0.02)
+    both = GaussianScene.concat([top, layer(0.0, 0.05, 0.05)])
+    f = fov_to_focal(0.7, 128)
+    cam = Camera(look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)), f, f, 64, 64, 128, 128)
+    inner = slice(32, 96)
+    see_through = lambda sc: float((rasterize(sc, cam).alpha[inner, inner] < 0.95).float().mean())  # noqa: E731
+    assert see_through(both) < 0.05 and see_through(top) > 0.3
+    out, report = refit_appearance(top, both, steps=300, views=8, resolution=64)
+    assert report["error_after"] < 0.5 * report["error_before"]
+    assert see_through(out) < 0.1
+    assert torch.equal(out.means, top.means) and torch.equal(out.quats, top.quats)
+    assert torch.equal(out.element, top.element)
+    assert refit_appearance(top, both, steps=0)[0] is top
+
+
 def test_style_cleaning_dilates_when_asked(tmp_path):
     """The style stage with dilate 1 grows every kept Gaussian and reports by how much; by default it
     leaves the scales as trained."""

@@ -52,6 +52,11 @@ def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict,
     report["source"] = str(source)
     report["labels_from"] = None if labels_from is None else str(labels_from)
     out = scene.subset(idx)
+    if cfg.refit > 0 and not report.get("skipped"):
+        from .surface import in_patch, refit_appearance
+
+        out, report["refit"] = refit_appearance(out, scene.subset(in_patch(scene, cfg)), cfg.refit, cfg.views,
+                                                cfg.resolution, cfg.seed, progress=True)
     if cfg.recolour > 0:
         from .surface import recolour_outliers
 

@@ -145,6 +145,10 @@ class StyleCleanConfig:
                                   "neighbours' median colour instead of going: positions, relief and labels stay (0: "
                                   "off)", minimum=0)
     colour_k: int = option(16, "neighbours of the colour-outlier test", minimum=1)
+    refit: int = option(0, "steps of the appearance refit (:func:`refit_appearance`): the kept Gaussians' scales, "
+                           "opacities and colours fitted to the renders of the whole patch (before cleaning, floaters "
+                           "excepted) on the visibility test's views, so that the layers and translucent fill cleaning "
+                           "removed from under them leave no gaps (0: off)", minimum=0)
     dilate: float = option(0.0, "each kept Gaussian's variance grows by (dilate x the kept Gaussians' median "
                                 "nearest-neighbour distance)^2 on every axis, opacity kept: a trained surface of "
                                 "small Gaussians closes where its gaps let what lies behind show through (0: off)",
@@ -505,6 +509,13 @@ def core_box(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tensor,
     return lo - pad, hi + pad
 
 
+def in_patch(scene: GaussianScene, cfg: StyleCleanConfig) -> torch.Tensor:
+    """[N] bool: the Gaussian's centre lies inside the style's core box (:func:`core_box`)."""
+    lo, hi = core_box(scene, cfg)
+    m = scene.means.detach().double()
+    return ~((m < lo) | (m > hi)).any(1)
+
+
 def surface_heights(points: torch.Tensor, opacity: torch.Tensor, grid: int = 64, q: float = 0.02) -> torch.Tensor:
     """The surface a view straight down (-z) meets: points [M, 3], opacities [M] -> heights [grid, grid]
     (NaN where a cell is empty), on a raster of the x-y box between the ``q`` and ``1 - q`` quantiles.
@@ -551,7 +562,7 @@ def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tens
     (keep, report), n = start, len(scene)
     lo, hi = core_box(scene, cfg)
     m = scene.means.detach().double()
-    _drop(keep, ((m < lo) | (m > hi)).any(1), report, "removed_outside_patch")
+    _drop(keep, ~in_patch(scene, cfg), report, "removed_outside_patch")
     report["patch_box"] = [lo.tolist(), hi.tolist()]
     _drop(keep, scene.opacities.detach() < cfg.min_opacity, report, "removed_low_opacity")
     if cfg.max_scale > 0 and bool(keep.any()):
@@ -629,3 +640,61 @@ def recolour_outliers(scene: GaussianScene, k: int, limit: float) -> tuple[Gauss
     out.sh_dc[odd] = rgb_to_sh_dc(med[odd]).to(out.sh_dc)
     out.sh_rest[odd] = 0
     return out, int(odd.sum())
+
+
+def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, views: int = 24,
+                     resolution: int = 200, seed: int = 0, progress: bool = False) -> tuple[GaussianScene, dict]:
+    """``kept`` [K] with its scales, opacities and colours refitted so that, alone, it renders as
+    ``reference`` [R] does (positions, rotations and labels stay); and a report.
+
+    Cleaning drops the Gaussians a style's views barely show, among them the second layer that fills
+    the gaps of the first: what is kept is see-through where the reference was solid. The refit
+    minimises, over ``steps`` Adam steps on ``views`` orbit views from above (``STYLE_ELEVATIONS``,
+    ``resolution`` px, one view per step),
+
+        | C_kept + (1 - A_kept) b  -  (C_ref + (1 - A_ref) b) |_1
+
+    (C premultiplied colour, A alpha, b a random background per step, so both colour and alpha are
+    fitted) over log-scales, opacity logits and the DC colour."""
+    from .cameras import fit_orbit
+    from .rasterizer import rasterize
+
+    if steps <= 0 or len(kept) == 0:
+        return kept, {"steps": 0}
+    cams = fit_orbit(reference, views, resolution, elevations_deg=STYLE_ELEVATIONS)
+    with torch.no_grad():
+        refs = [rasterize(reference.detach(), c) for c in cams]
+        targets = [(r.rgb, r.alpha) for r in refs]
+
+        def error(s):  # mean |C - C_ref| + |A - A_ref| over the views
+            total = 0.0
+            for c, (rgb, alpha) in zip(cams, targets):
+                r = rasterize(s, c)
+                total += float((r.rgb - rgb).abs().mean() + (r.alpha - alpha).abs().mean())
+            return total / len(cams)
+        before = error(kept.detach())
+    out = kept.clone()
+    params = {"log_scales": out.log_scales, "opacity_logits": out.opacity_logits, "sh_dc": out.sh_dc}
+    for p in params.values():
+        p.requires_grad_(True)
+    opt = torch.optim.Adam([{"params": [params["log_scales"]], "lr": 5e-3},
+                            {"params": [params["opacity_logits"]], "lr": 5e-2},
+                            {"params": [params["sh_dc"]], "lr": 2.5e-3}], eps=1e-15)
+    g = torch.Generator().manual_seed(seed)
+    from tqdm import tqdm
+
+    for _ in tqdm(range(steps), desc="style refit", disable=not progress, mininterval=2.0):
+        i = int(torch.randint(len(cams), (1,), generator=g))
+        b = torch.rand(3, generator=g).to(out.means)
+        r = rasterize(out, cams[i], background=b)
+        loss = ((r.rgb - (targets[i][0] + (1 - targets[i][1])[..., None] * b)).abs().mean()
+                + (r.alpha - targets[i][1]).abs().mean())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    out = out.detach()
+    for p in (out.log_scales, out.opacity_logits, out.sh_dc):
+        p.requires_grad_(False)
+    with torch.no_grad():
+        after = error(out)
+    return out, {"steps": steps, "views": views, "error_before": before, "error_after": after}
