@@ -1,5 +1,6 @@
 from dataclasses import replace
 
+import math
 import numpy as np
 import pytest
 import torch
@@ -825,10 +826,11 @@ def test_dilation_grows_each_covariance_by_c2_identity_and_closes_gaps():
 def test_refit_closes_the_gaps_a_removed_second_layer_leaves():
     """refit_appearance: a top layer of small Gaussians with gaps, whose second layer (offset by half a
     spacing, underneath) made the patch solid, is fitted alone to the two layers' renders; afterwards it
-    is solid from above as the two were, and its means, rotations and labels have not moved."""
+    is solid from above as the two were, its means, rotations and labels have not moved, and no scale
+    grew past REFIT_GROWTH."""
     from wast3d.cameras import Camera, look_at, fov_to_focal
     from wast3d.rasterizer import rasterize
-    from wast3d.surface import refit_appearance
+    from wast3d.surface import REFIT_GROWTH, refit_appearance
 
     g = torch.Generator().manual_seed(0)
     xy = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 21), torch.linspace(-1, 1, 21), indexing="ij"), -1)
@@ -841,7 +843,7 @@ def test_refit_closes_the_gaps_a_removed_second_layer_leaves():
         s.element = torch.arange(441)
         return s
 
-    top = layer(0.05, 0.0, 0.02)
+    top = layer(0.05, 0.0, 0.04)
     both = GaussianScene.concat([top, layer(0.0, 0.05, 0.05)])
     f = fov_to_focal(0.7, 128)
     cam = Camera(look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)), f, f, 64, 64, 128, 128)
@@ -853,6 +855,7 @@ def test_refit_closes_the_gaps_a_removed_second_layer_leaves():
     assert see_through(out) < 0.1
     assert torch.equal(out.means, top.means) and torch.equal(out.quats, top.quats)
     assert torch.equal(out.element, top.element)
+    assert bool((out.log_scales <= top.log_scales + math.log(REFIT_GROWTH) + 1e-6).all())  # no blob
     assert refit_appearance(top, both, steps=0)[0] is top
 
 

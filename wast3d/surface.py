@@ -68,6 +68,7 @@ dark letters on white) it smears them grey, so it is not the default (docs/measu
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -161,6 +162,7 @@ class StyleCleanConfig:
 
 
 CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
+REFIT_GROWTH = 1.5  # refit_appearance: the most each scale may grow
 STYLE_ELEVATIONS = (15.0, 35.0, 55.0, 80.0)  # a style patch is seen from above (cf. render.export_blender)
 
 
@@ -655,7 +657,8 @@ def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, 
         | C_kept + (1 - A_kept) b  -  (C_ref + (1 - A_ref) b) |_1
 
     (C premultiplied colour, A alpha, b a random background per step, so both colour and alpha are
-    fitted) over log-scales, opacity logits and the DC colour."""
+    fitted) over log-scales, opacity logits and the DC colour; each scale grows at most ``REFIT_GROWTH``
+    fold (uncapped, a trained speck of odd colour swells into a blob on the result)."""
     from .cameras import fit_orbit
     from .rasterizer import rasterize
 
@@ -681,6 +684,7 @@ def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, 
                             {"params": [params["opacity_logits"]], "lr": 5e-2},
                             {"params": [params["sh_dc"]], "lr": 2.5e-3}], eps=1e-15)
     g = torch.Generator().manual_seed(seed)
+    cap = kept.log_scales.detach() + math.log(REFIT_GROWTH)
     from tqdm import tqdm
 
     for _ in tqdm(range(steps), desc="style refit", disable=not progress, mininterval=2.0):
@@ -692,6 +696,8 @@ def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, 
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        with torch.no_grad():  # each axis grows at most REFIT_GROWTH-fold: a speck must not become a blob
+            out.log_scales.copy_(torch.minimum(out.log_scales, cap))
     out = out.detach()
     for p in (out.log_scales, out.opacity_logits, out.sh_dc):
         p.requires_grad_(False)
