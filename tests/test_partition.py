@@ -470,6 +470,45 @@ def test_recolouring_colour_outliers_keeps_every_position():
     assert m == 0 and torch.equal(same.sh_dc, odd.sh_dc)
 
 
+def test_recolouring_spares_what_the_renders_show():
+    """shown_limit: on a white layer with a dark square on top (a real capture's lettering), the white
+    Gaussians round the square, whose nearest neighbours are mostly the square's, keep their colour
+    because the renders show it; without the second test they turn dark (the smear seen on the fruit
+    capture, session 19). Magenta specks under the layer (a trained speck: its colour the blending hid)
+    are recoloured either way. shown_colours reads the square's core as dark and the specks as white."""
+    from wast3d.surface import recolour_outliers, shown_colours
+
+    def discs(xy, z, size, rgb):
+        n = len(xy)
+        return GaussianScene.from_activated(torch.cat([xy, torch.full((n, 1), z)], 1),
+                                            torch.tensor([size, size, 0.005]).expand(n, 3), None, 0.99,
+                                            rgb=torch.tensor(rgb).expand(n, 3))
+
+    def grid(lo, hi, n):
+        t = torch.linspace(lo, hi, n)
+        return torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)
+
+    square = grid(-0.06, 0.06, 7) + 0.05  # 7 x 7 overlapping dots, 0.02 apart
+    specks = torch.tensor([[0.55, 0.55], [-0.55, 0.55], [0.55, -0.55], [-0.55, -0.55]])
+    s = GaussianScene.concat([discs(grid(-1, 1, 21), 0.0, 0.06, [0.95] * 3), discs(square, 0.02, 0.02, [0.1] * 3),
+                              discs(specks, -0.02, 0.03, [1.0, 0.0, 1.0])])
+    square_ids, speck_ids = torch.arange(441, 490), torch.arange(490, 494)
+    inside = square_ids[((square - 0.05).abs() < 0.03).all(1)]  # its 3 x 3 core
+    shown = shown_colours(s, views=8, resolution=192)
+    assert float((shown[inside] - 0.1).abs().max()) < 0.15
+    assert float((shown[speck_ids] - 0.95).abs().max()) < 0.05
+    white_ids = torch.arange(441)
+    under = white_ids[((s.means[white_ids, :2] - 0.05).abs() < 0.08).all(1)]  # white the square hides
+    gated, n = recolour_outliers(s, 64, 0.3, shown, 0.3)
+    assert torch.allclose(gated.rgb[square_ids], s.rgb[square_ids])
+    assert float((gated.rgb[speck_ids] - 0.95).abs().max()) < 0.05
+    darkened = white_ids[gated.rgb[white_ids, 0] < 0.5]
+    assert set(darkened.tolist()) <= set(under.tolist()) and n == len(darkened) + 4
+    plain, m = recolour_outliers(s, 64, 0.3)  # without the test, the white round the square turns dark
+    darkened = white_ids[plain.rgb[white_ids, 0] < 0.5]
+    assert len(set(darkened.tolist()) - set(under.tolist())) >= 10 and m == len(darkened) + 4
+
+
 def test_style_cleaning_recolours_specks_when_asked(tmp_path):
     """The style stage with recolour 0.3 recolours planted magenta specks and says how many; at its
     default (off, since it smears a real capture's coloured features) it keeps them."""

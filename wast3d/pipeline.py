@@ -58,9 +58,11 @@ def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict,
         out, report["refit"] = refit_appearance(out, scene.subset(in_patch(scene, cfg)), cfg.refit, cfg.views,
                                                 cfg.resolution, cfg.seed, progress=True)
     if cfg.recolour > 0:
-        from .surface import recolour_outliers
+        from .surface import recolour_outliers, shown_colours
 
-        out, report["recoloured_colour_outliers"] = recolour_outliers(out, cfg.colour_k, cfg.recolour)
+        shown = shown_colours(out, cfg.views, cfg.resolution) if cfg.shown_limit > 0 else None
+        out, report["recoloured_colour_outliers"] = recolour_outliers(out, cfg.colour_k, cfg.recolour, shown,
+                                                                      cfg.shown_limit)
     if cfg.dilate > 0:
         from .surface import dilate_gaussians
 

@@ -146,6 +146,10 @@ class StyleCleanConfig:
                                   "neighbours' median colour instead of going: positions, relief and labels stay (0: "
                                   "off)", minimum=0)
     colour_k: int = option(16, "neighbours of the colour-outlier test", minimum=1)
+    shown_limit: float = option(0.0, "recolour only Gaussians whose RGB also lies farther than this from the colour the "
+                                     "style's own renders show at them (surface.shown_colours, the visibility test's "
+                                     "views): a trained speck its neighbours' blending hid, not a real capture's "
+                                     "colour feature (0: off)", minimum=0)
     refit: int = option(0, "steps of the appearance refit (:func:`refit_appearance`): the kept Gaussians' scales, "
                            "opacities and colours fitted to the renders of the whole patch (before cleaning, floaters "
                            "excepted) on the visibility test's views, so that the layers and translucent fill cleaning "
@@ -264,6 +268,41 @@ def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_
         f = w[:, 0].double().cpu() * (z / cam.fx) ** 2 / alone.clamp_min(1e-30)
         best = torch.maximum(best, torch.where(z > cam.near, f, torch.zeros_like(f)))
     return best
+
+
+def shown_colours(scene: GaussianScene, views: int, resolution: int,
+                  elevations_deg: tuple = STYLE_ELEVATIONS) -> torch.Tensor:
+    """[N, 3] the colour the scene's own renders show where each Gaussian is drawn:
+
+        shown_i = sum_v sum_p w_iv(p) R_v(p) / sum_v sum_p w_iv(p)
+
+    over ``views`` orbit views, w_iv(p) Gaussian i's blending weight at pixel p (the gradient of the
+    render with respect to its colour, as in :func:`seen_fraction`), R_v(p) the render's colour
+    un-premultiplied by its alpha (the background does not enter). A Gaussian whose colour the blending
+    with its neighbours hid gets theirs. One that its neighbours overlap shows about its own colour; an
+    isolated one, about half of it blended with what surrounds it (for a Gaussian profile
+    sum_p alpha^2 / sum_p alpha = o / 2), so the test errs towards keeping a colour. Gaussians no view
+    draws get their own colour. (The colour at each one's centre pixel in its best view was tried too:
+    it recoloured 2.5x more of the fruit capture's Gaussians, with grey smudges on its letters.)"""
+    from .cameras import fit_orbit
+    from .rasterizer import rasterize
+
+    s = scene.detach()
+    num = torch.zeros(len(s), 3, dtype=torch.float64)
+    den = torch.zeros(len(s), dtype=torch.float64)
+    for cam in fit_orbit(s, views, resolution, elevations_deg=elevations_deg):
+        with torch.no_grad():
+            r = rasterize(s, cam)
+            shown = r.rgb / r.alpha.clamp_min(1e-6)[..., None]
+        ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
+        out = rasterize(s, cam, colors=ones)
+        (g,) = torch.autograd.grad((out.rgb * shown).sum(), ones, retain_graph=True)
+        (w,) = torch.autograd.grad(out.rgb[..., 0].sum(), ones)
+        num += g.double().cpu()
+        den += w[:, 0].double().cpu()
+    own = s.rgb.clamp(0, 1).double().cpu()
+    drawn = den > 1e-9
+    return torch.where(drawn[:, None], num / den.clamp_min(1e-30)[:, None], own).to(s.means)
 
 
 def _drop(keep: torch.Tensor, out: torch.Tensor, report: dict, key: str) -> None:
@@ -627,17 +666,24 @@ def dilate_gaussians(scene: GaussianScene, amount: float) -> tuple[GaussianScene
     return out, c
 
 
-def recolour_outliers(scene: GaussianScene, k: int, limit: float) -> tuple[GaussianScene, int]:
+def recolour_outliers(scene: GaussianScene, k: int, limit: float, shown: torch.Tensor | None = None,
+                      shown_limit: float = 0.0) -> tuple[GaussianScene, int]:
     """``scene`` with each Gaussian whose RGB lies more than ``limit`` from the median RGB of its k
     nearest neighbours recoloured to that median (DC term; its view-dependent terms zeroed), and how
-    many were. Unlike dropping them (``colour_outliers``) every position stays, so the patch's relief,
-    its element labels and what registration measures on it do not change: a trained patch's magenta,
-    blue and green Gaussians inside brown and grey pebbles are ones its views barely constrain, and
-    the colour their neighbours show is the best guess of what the surface there looks like."""
+    many were. With ``shown`` [N, 3] (:func:`shown_colours`) and ``shown_limit`` > 0, only those whose RGB
+    also lies more than ``shown_limit`` from what the renders show at them. Unlike dropping them
+    (``colour_outliers``) every position stays, so the patch's relief, its element labels and what
+    registration measures on it do not change: a trained patch's magenta, blue and green Gaussians
+    inside brown and grey pebbles are ones its views barely constrain, and the colour their neighbours
+    show is the best guess of what the surface there looks like. The second test keeps a real
+    capture's colour features (a label's dark letters on white differ from their neighbours too, but
+    the renders show them)."""
     if len(scene) <= k:
         return scene, 0
     med, dev = _colour_deviation(scene, torch.arange(len(scene)), k)
     odd = dev > limit
+    if shown is not None and shown_limit > 0:
+        odd &= (scene.rgb.detach().clamp(0, 1) - shown.to(scene.rgb)).norm(dim=1) > shown_limit
     out = scene.clone()
     out.sh_dc[odd] = rgb_to_sh_dc(med[odd]).to(out.sh_dc)
     out.sh_rest[odd] = 0
