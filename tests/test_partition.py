@@ -510,8 +510,9 @@ def test_recolouring_spares_what_the_renders_show():
 
 
 def test_style_cleaning_recolours_specks_when_asked(tmp_path):
-    """The style stage with recolour 0.3 recolours planted magenta specks and says how many; at its
-    default (off, since it smears a real capture's coloured features) it keeps them."""
+    """The style stage with recolour 0.3 and no render test recolours planted magenta specks (visible
+    ones: the render test would spare them) and says how many; with recolour 0 it keeps them. Its
+    default is both tests at 0.3."""
     import json
 
     from wast3d.pipeline import run_style_clean
@@ -525,7 +526,7 @@ def test_style_cleaning_recolours_specks_when_asked(tmp_path):
     write_ply(tmp_path / "s.ply", GaussianScene(**{**s.tensors(), "sh_dc": dc}, element=s.element))
     params = {"visibility": False}  # the specks' colours, not their visibility, are under test
     run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "c.ply", out_json=tmp_path / "c.json",
-                    params={**params, "recolour": 0.3})
+                    params={**params, "recolour": 0.3, "shown_limit": 0.0})
     report = json.loads((tmp_path / "c.json").read_text())
     assert report["recoloured_colour_outliers"] >= 50
     from wast3d.ply import read_ply
@@ -534,7 +535,8 @@ def test_style_cleaning_recolours_specks_when_asked(tmp_path):
     magenta = ((out.rgb - torch.tensor([1.0, 0.0, 1.0])).norm(dim=1) < 0.2).sum()
     assert magenta <= 5
     run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "k.ply", out_json=tmp_path / "k.json",
-                    params=params)
+                    params={**params, "recolour": 0.0})
+    assert (StyleCleanConfig().recolour, StyleCleanConfig().shown_limit) == (0.3, 0.3)
     assert ((read_ply(tmp_path / "k.ply").rgb - torch.tensor([1.0, 0.0, 1.0])).norm(dim=1) < 0.2).sum() >= 50
 
 

@@ -59,10 +59,13 @@ outliers* (``colour_outliers`` > 0, off by default): Gaussians whose colour lies
 distance) from the median colour of their ``colour_k`` nearest kept neighbours; a trained patch holds
 a few percent of magenta, blue or green Gaussians inside brown and grey pebbles, mostly seen through
 gaps, which the stylization exposes as specks. Dropping them moves the relief (positions go);
-``recolour`` > 0 (an option, off by default) gives a kept Gaussian farther than that from its
-neighbours' median colour that median instead, every position and label staying. It cleans the
-trained demo styles, but on a real capture whose small features are colour (the shared fruit label's
-dark letters on white) it smears them grey, so it is not the default (docs/measurements.md, session 19).
+``recolour`` (0.3) gives a kept Gaussian farther than that from its neighbours' median colour that
+median instead, every position and label staying, where its colour also lies farther than
+``shown_limit`` (0.3) from what the style's own renders show at it (:func:`shown_colours`). The first
+test alone cleans the trained demo styles but smears a real capture whose small features are colour
+(the shared fruit label's dark letters on white turn grey: its white Gaussians' neighbours are the
+letters'); the second spares what the renders show, and a trained speck is what they do not
+(docs/measurements.md, sessions 19 and 26).
 """
 
 from __future__ import annotations
@@ -142,11 +145,11 @@ class StyleCleanConfig:
     colour_outliers: float = option(0.0, "drop Gaussians whose RGB lies farther than this from the median of their "
                                          "colour_k nearest neighbours (0: off): specks of odd colour inside the "
                                          "elements", minimum=0)
-    recolour: float = option(0.0, "the colour-outlier test (this limit) on the kept Gaussians, which take their "
+    recolour: float = option(0.3, "the colour-outlier test (this limit) on the kept Gaussians, which take their "
                                   "neighbours' median colour instead of going: positions, relief and labels stay (0: "
-                                  "off)", minimum=0)
+                                  "off). With shown_limit, only specks the style's renders do not show", minimum=0)
     colour_k: int = option(16, "neighbours of the colour-outlier test", minimum=1)
-    shown_limit: float = option(0.0, "recolour only Gaussians whose RGB also lies farther than this from the colour the "
+    shown_limit: float = option(0.3, "recolour only Gaussians whose RGB also lies farther than this from the colour the "
                                      "style's own renders show at them (surface.shown_colours, the visibility test's "
                                      "views): a trained speck its neighbours' blending hid, not a real capture's "
                                      "colour feature (0: off)", minimum=0)
