@@ -509,6 +509,26 @@ def test_recolouring_spares_what_the_renders_show():
     assert len(set(darkened.tolist()) - set(under.tolist())) >= 10 and m == len(darkened) + 4
 
 
+def test_disabled_style_cleaning_leaves_the_style_as_it_is(tmp_path):
+    """style_clean.enabled false: the stage writes the style unchanged (every Gaussian, every colour),
+    though recolouring is on by default and would change planted specks."""
+    import json
+
+    from wast3d.pipeline import run_style_clean
+    from wast3d.ply import read_ply, write_ply
+    from wast3d.procedural import style_scene
+
+    s = style_scene("pebbles", 3000)
+    pick = torch.randperm(len(s), generator=torch.Generator().manual_seed(0))[:30]
+    s.sh_dc[pick] = (torch.tensor([1.0, 0.0, 1.0]) - 0.5) / 0.28209479177387814
+    write_ply(tmp_path / "s.ply", s)
+    run_style_clean(scene=tmp_path / "s.ply", out_ply=tmp_path / "o.ply", out_json=tmp_path / "o.json",
+                    params={"enabled": False, "shown_limit": 0.0})
+    out, report = read_ply(tmp_path / "o.ply"), json.loads((tmp_path / "o.json").read_text())
+    assert report["skipped"] and "recoloured_colour_outliers" not in report
+    assert len(out) == len(s) and torch.allclose(out.sh_dc, s.sh_dc)
+
+
 def test_style_cleaning_recolours_specks_when_asked(tmp_path):
     """The style stage with recolour 0.3 and no render test recolours planted magenta specks (visible
     ones: the render test would spare them) and says how many; with recolour 0 it keeps them. Its

@@ -52,25 +52,29 @@ def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict,
     report["source"] = str(source)
     report["labels_from"] = None if labels_from is None else str(labels_from)
     out = scene.subset(idx)
-    if cfg.refit > 0 and not report.get("skipped"):
-        from .surface import in_patch, refit_appearance
-
-        out, report["refit"] = refit_appearance(out, scene.subset(in_patch(scene, cfg)), cfg.refit, cfg.views,
-                                                cfg.resolution, cfg.seed, progress=True)
-    if cfg.recolour > 0:
-        from .surface import recolour_outliers, shown_colours
-
-        shown = shown_colours(out, cfg.views, cfg.resolution) if cfg.shown_limit > 0 else None
-        out, report["recoloured_colour_outliers"] = recolour_outliers(out, cfg.colour_k, cfg.recolour, shown,
-                                                                      cfg.shown_limit)
-    if cfg.dilate > 0:
-        from .surface import dilate_gaussians
-
-        out, report["dilated_by"] = dilate_gaussians(out, cfg.dilate)
+    if not report.get("skipped"):  # enabled: false is the style as it is: no refit, recolouring or dilation
+        out = _finish_style(out, scene, cfg, report)
     if out.element is not None:
         report["element_share_of_gaussians"] = float((out.element > 0).double().mean())
     write_ply(out_ply, out)
     write_json(out_json, report)
+
+
+def _finish_style(out, scene, cfg, report: dict):
+    """The cleaned style ``out`` refitted, recoloured and dilated as ``cfg`` asks (each reported);
+    ``scene`` is the style before cleaning (the refit's reference)."""
+    from .surface import dilate_gaussians, in_patch, recolour_outliers, refit_appearance, shown_colours
+
+    if cfg.refit > 0:
+        out, report["refit"] = refit_appearance(out, scene.subset(in_patch(scene, cfg)), cfg.refit, cfg.views,
+                                                cfg.resolution, cfg.seed, progress=True)
+    if cfg.recolour > 0:
+        shown = shown_colours(out, cfg.views, cfg.resolution) if cfg.shown_limit > 0 else None
+        out, report["recoloured_colour_outliers"] = recolour_outliers(out, cfg.colour_k, cfg.recolour, shown,
+                                                                      cfg.shown_limit)
+    if cfg.dilate > 0:
+        out, report["dilated_by"] = dilate_gaussians(out, cfg.dilate)
+    return out
 
 
 def run_cluster(*, content: Path, out_npz: Path, params: dict, out_picture: Path | None = None) -> None:

@@ -169,8 +169,8 @@ class StyleCleanConfig:
 
 
 CONTENT_ELEVATIONS = (-30.0, 10.0, 40.0, 75.0)
-REFIT_GROWTH = 1.5  # refit_appearance: the most each scale may grow
 STYLE_ELEVATIONS = (15.0, 35.0, 55.0, 80.0)  # a style patch is seen from above (cf. render.export_blender)
+REFIT_GROWTH = 1.5  # refit_appearance: the most each scale may grow
 
 
 def median_spacing(points: torch.Tensor) -> float:
