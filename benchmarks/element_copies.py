@@ -64,6 +64,7 @@ def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> 
 
     from wast3d.cameras import Camera
     from wast3d.elements import copy_ids
+    from wast3d.figures import grid, save_png
     from wast3d.rasterizer import rasterize
 
     cid = copy_ids(result.element, torch.from_numpy(clusters))
@@ -77,13 +78,9 @@ def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> 
         cam = Camera(torch.tensor(c["world_to_cam"], dtype=torch.float32), c["fx"], c["fy"], c["cx"], c["cy"],
                      c["width"], c["height"])
         m = rasterize(result, cam, background=(1.0, 1.0, 1.0), colors=colors)
-        tiles.append(Image.fromarray((m.rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)).resize((384, 384)))
-    sheet = Image.new("RGB", (384 * len(tiles), 384))
-    for k, t in enumerate(tiles):
-        sheet.paste(t, (384 * k, 0))
-    tmp = out.with_suffix(".tmp.png")
-    sheet.save(tmp)
-    tmp.replace(out)
+        tile = Image.fromarray((m.rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)).resize((384, 384))
+        tiles.append(np.asarray(tile))
+    save_png(out, grid(tiles, len(tiles)))
 
 
 def measure(pair: str, method: str, partition: str, out_dir: Path) -> dict:

@@ -246,6 +246,19 @@ def outward_normals(scene: GaussianScene, views: int = 24, resolution: int = 128
     return n * sign[:, None], decided
 
 
+def _blend_weights(s: GaussianScene, cam, image: torch.Tensor | None = None):
+    """(w [N], wi [N, 3] or None): each Gaussian's blending weights in ``cam``'s render summed over the
+    pixels, sum_p alpha_i(p) T_i(p) (the gradient of the render's sum with respect to per-Gaussian colours
+    of 1), and with ``image`` [H, W, 3] the same sum weighting each pixel by its value there."""
+    from .rasterizer import rasterize
+
+    ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
+    out = rasterize(s, cam, colors=ones)
+    (w,) = torch.autograd.grad(out.rgb[..., 0].sum(), ones, retain_graph=image is not None)
+    wi = None if image is None else torch.autograd.grad((out.rgb * image).sum(), ones)[0]
+    return w[:, 0], wi
+
+
 def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_deg: tuple) -> torch.Tensor:
     """[N] how much of each Gaussian the renders show, in its best of ``views`` orbit views:
 
@@ -257,18 +270,15 @@ def seen_fraction(scene: GaussianScene, views: int, resolution: int, elevations_
     depth). About 1 for an unoccluded Gaussian seen face-on, 0 for one hidden in every view; independent
     of the resolution and of the Gaussians' sizes."""
     from .cameras import fit_orbit
-    from .rasterizer import rasterize
 
     best = torch.zeros(len(scene), dtype=torch.float64)
     s = scene.detach()
     alone = 2 * torch.pi * footprint(s.scales, s.opacities)
     for cam in fit_orbit(s, views, resolution, elevations_deg=elevations_deg):
-        ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
-        out = rasterize(s, cam, colors=ones)
-        (w,) = torch.autograd.grad(out.rgb[..., 0].sum(), ones)
+        w, _ = _blend_weights(s, cam)
         V = cam.world_to_cam.to(s.means)
         z = (s.means @ V[2, :3] + V[2, 3]).double()
-        f = w[:, 0].double().cpu() * (z / cam.fx) ** 2 / alone.clamp_min(1e-30)
+        f = w.double().cpu() * (z / cam.fx) ** 2 / alone.clamp_min(1e-30)
         best = torch.maximum(best, torch.where(z > cam.near, f, torch.zeros_like(f)))
     return best
 
@@ -297,12 +307,9 @@ def shown_colours(scene: GaussianScene, views: int, resolution: int,
         with torch.no_grad():
             r = rasterize(s, cam)
             shown = r.rgb / r.alpha.clamp_min(1e-6)[..., None]
-        ones = torch.ones(len(s), 3, dtype=s.dtype, requires_grad=True)
-        out = rasterize(s, cam, colors=ones)
-        (g,) = torch.autograd.grad((out.rgb * shown).sum(), ones, retain_graph=True)
-        (w,) = torch.autograd.grad(out.rgb[..., 0].sum(), ones)
+        w, g = _blend_weights(s, cam, shown)
         num += g.double().cpu()
-        den += w[:, 0].double().cpu()
+        den += w.double().cpu()
     own = s.rgb.clamp(0, 1).double().cpu()
     drawn = den > 1e-9
     return torch.where(drawn[:, None], num / den.clamp_min(1e-30)[:, None], own).to(s.means)
@@ -715,8 +722,7 @@ def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, 
         return kept, {"steps": 0}
     cams = fit_orbit(reference, views, resolution, elevations_deg=STYLE_ELEVATIONS)
     with torch.no_grad():
-        refs = [rasterize(reference.detach(), c) for c in cams]
-        targets = [(r.rgb, r.alpha) for r in refs]
+        targets = [(r.rgb, r.alpha) for r in (rasterize(reference.detach(), c) for c in cams)]
 
         def error(s):  # mean |C - C_ref| + |A - A_ref| over the views
             total = 0.0
@@ -726,12 +732,10 @@ def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, 
             return total / len(cams)
         before = error(kept.detach())
     out = kept.clone()
-    params = {"log_scales": out.log_scales, "opacity_logits": out.opacity_logits, "sh_dc": out.sh_dc}
-    for p in params.values():
+    fitted = ((out.log_scales, 5e-3), (out.opacity_logits, 5e-2), (out.sh_dc, 2.5e-3))  # pretraining's rates
+    for p, _ in fitted:
         p.requires_grad_(True)
-    opt = torch.optim.Adam([{"params": [params["log_scales"]], "lr": 5e-3},
-                            {"params": [params["opacity_logits"]], "lr": 5e-2},
-                            {"params": [params["sh_dc"]], "lr": 2.5e-3}], eps=1e-15)
+    opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in fitted], eps=1e-15)
     g = torch.Generator().manual_seed(seed)
     cap = kept.log_scales.detach() + math.log(REFIT_GROWTH)
     from tqdm import tqdm
@@ -748,8 +752,6 @@ def refit_appearance(kept: GaussianScene, reference: GaussianScene, steps: int, 
         with torch.no_grad():  # each axis grows at most REFIT_GROWTH-fold: a speck must not become a blob
             out.log_scales.copy_(torch.minimum(out.log_scales, cap))
     out = out.detach()
-    for p in (out.log_scales, out.opacity_logits, out.sh_dc):
-        p.requires_grad_(False)
     with torch.no_grad():
         after = error(out)
     return out, {"steps": steps, "views": views, "error_before": before, "error_after": after}
