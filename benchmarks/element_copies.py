@@ -62,21 +62,19 @@ def completeness(style_element: np.ndarray, selected: np.ndarray, clusters: np.n
 def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> None:
     from PIL import Image
 
-    from wast3d.cameras import Camera
     from wast3d.elements import copy_ids
     from wast3d.figures import grid, save_png
     from wast3d.rasterizer import rasterize
+    from wast3d.render import read_cameras
 
     cid = copy_ids(result.element, torch.from_numpy(clusters))
     _, inv = torch.unique(cid, return_inverse=True)
     colours = torch.rand(int(inv.max()) + 1, 3, generator=torch.Generator().manual_seed(0)) * 0.8 + 0.2
     col = colours[inv].to(result.means.dtype)
     col[cid < 0] = 0.0
-    cams = json.loads(render_json.read_text())["cameras"]
+    cams = read_cameras(render_json.parent)
     tiles = []
-    for c, colors in ((cams[0], col), (cams[-1], col), (cams[-1], None)):
-        cam = Camera(torch.tensor(c["world_to_cam"], dtype=torch.float32), c["fx"], c["fy"], c["cx"], c["cy"],
-                     c["width"], c["height"])
+    for cam, colors in ((cams[0], col), (cams[-1], col), (cams[-1], None)):
         m = rasterize(result, cam, background=(1.0, 1.0, 1.0), colors=colors)
         tile = Image.fromarray((m.rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)).resize((384, 384))
         tiles.append(np.asarray(tile))

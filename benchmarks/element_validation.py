@@ -6,6 +6,9 @@
 - confetti (negative): the result's Gaussians shuffled within each cluster, so that every position is
   still on the result but the element copies are torn apart; intact must fall to ~0;
 - the unstylized content and the colour transfer (negatives): element_share 0.
+- element_whole's known answers, on the style itself (its texture reference's cameras): every element
+  cut in two by the median plane across its longest axis (its visible pieces halve: ratio ~0.5), in
+  four by its two longest axes (~0.25); the confetti's pieces fall to a few pixels (ratio ~0).
 
 With ``--texture`` the style metrics that claim to see the style's texture (texture_swd, relief_w1)
 face the same two controls: the confetti is rendered by the render stage's own function
@@ -37,7 +40,8 @@ sys.path.insert(0, str(ROOT))
 
 
 def main(argv=None) -> None:
-    from wast3d.elements import ElementConfig, copy_ids, element_intact
+    from wast3d.elements import ElementConfig, copy_ids, element_intact, element_whole
+    from wast3d.render import element_pieces, read_cameras
     from wast3d.io_utils import load_npz
     from wast3d.ply import read_ply
     from wast3d.stages import artifact
@@ -60,7 +64,8 @@ def main(argv=None) -> None:
                 continue
             m = json.loads(f.read_text())
             rows.append({"pair": pair, "control": role, "method": method, "element_share_ratio": m.get("element_share_ratio"),
-                         "element_intact": m.get("element_intact"), "coverage": m.get("coverage"),
+                         "element_intact": m.get("element_intact"), "element_whole_ratio": m.get("element_whole_ratio"),
+                         "coverage": m.get("coverage"),
                          "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1")})
         ours = dict(results=a.results, content=content, style=style, experiment="default")
         res = read_ply(artifact("final", **ours))
@@ -72,17 +77,45 @@ def main(argv=None) -> None:
         for c in clusters.unique():
             idx = (clusters == c).nonzero().squeeze(1)
             shuffled[idx] = res.means[idx[torch.randperm(len(idx), generator=g)]]
-        conf = element_intact(before, shuffled, copy_ids(res.element, clusters), ElementConfig())
+        cfg = ElementConfig()
+        conf = element_intact(before, shuffled, copy_ids(res.element, clusters), cfg)
+        own = json.loads(Path(artifact("eval", a.results, content=content, style=style, method="default")).read_text())
+        whole_style = own["element_whole_style"]
+        cams = read_cameras(artifact("render_pair", a.results, content=content, style=style, method="default"), 24)
+        whole = element_whole(element_pieces(replace(res, means=shuffled), copy_ids(res.element, clusters), cams,
+                                             cfg.piece_tol, cfg.min_alpha)) or 0.0
         row = {"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
-               "element_share_ratio": None, "element_intact": conf["intact"], "coverage": None}
+               "element_share_ratio": None, "element_intact": conf["intact"],
+               "element_whole_ratio": whole / whole_style, "coverage": None}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
         rows.append(row)
+        sty = read_ply(own["style"])
+        ref_cams = read_cameras(artifact("texture_reference", a.results, content=content, style=style), 24)
+        for axes, role in ((1, "style, elements cut in two (known ~0.5)"), (2, "style, elements cut in four (~0.25)")):
+            cut = cut_elements(sty.means, sty.element, axes)
+            w = element_whole(element_pieces(sty, cut, ref_cams, cfg.piece_tol, cfg.min_alpha)) or 0.0
+            rows.append({"pair": pair, "control": role, "method": "the style's texture reference",
+                         "element_whole_ratio": w / whole_style})
     df = pd.DataFrame(rows)
     out = a.results / "benchmarks" / "element_validation.csv"
     out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(out, index=False)
     print(df.to_string(index=False))
+
+
+def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch.Tensor:
+    """[N] copy ids with every element (label > 0) cut by the median planes across its ``axes`` longest
+    principal axes (2 ** axes pieces each; the ground -1)."""
+    out = torch.full_like(element.long(), -1)
+    for j in element[element > 0].unique():
+        idx = (element == j).nonzero().squeeze(1)
+        p = means[idx].double() - means[idx].double().mean(0)
+        vecs = torch.linalg.eigh(p.T @ p)[1].flip(1)[:, :axes]  # longest first
+        proj = p @ vecs
+        bits = (proj > proj.median(0).values).long() @ (2 ** torch.arange(axes))
+        out[idx] = int(j) * 4 + bits
+    return out
 
 
 def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds: int) -> dict:

@@ -5,8 +5,8 @@ import pytest
 import torch
 from conftest import random_scene
 
-from wast3d.elements import (ElementConfig, copy_ids, element_diameter, element_intact, element_pixels,
-                             element_share, label_colours, transfer_elements)
+from wast3d.elements import (ElementConfig, copy_codes, copy_ids, element_diameter, element_intact, element_pixels,
+                             element_share, element_whole, label_colours, piece_areas, transfer_elements)
 from wast3d.gaussians import GaussianScene
 from wast3d.ply import PlyError, read_ply, write_ply
 from wast3d.procedural import style_scene
@@ -84,6 +84,52 @@ def test_element_share_of_rendered_label_channel():
     assert share(s.subset(s.element > 0)) > 0.97  # the pebbles alone
     with pytest.raises(ValueError, match="no foreground"):
         element_share(torch.zeros(1, 4, 4), torch.zeros(1, 4, 4))
+
+
+def test_piece_areas_count_connected_pixels_of_one_copy_and_leave_blends_out():
+    copies = torch.tensor([-1, 0, 1])
+    cols, codes = copy_codes(copies, dtype=torch.float64)
+    assert torch.equal(cols[0], torch.zeros(6)) and codes.shape == (2, 6)
+    img = torch.zeros(8, 8, 6, dtype=torch.float64)
+    img[:, :3] = codes[0]          # copy 0: 24 pixels
+    img[:, 5:] = codes[1]          # copy 1: 24 pixels, not touching copy 0
+    img[:4, 3] = 0.5 * (codes[0] + codes[1])  # a blend of both: in no piece
+    img[4:, 3:5] = codes[0]         # copy 0 again, joined to its first piece along rows 4..7: 32 pixels
+    img[7, 4] = 0.9 * codes[0] + 0.1 * codes[1]  # copy 1 weighs 0.1 < tol: still copy 0's
+    el, alpha = torch.ones(8, 8), torch.ones(8, 8)
+    el[:4, 4] = 0                   # the ground
+    a = piece_areas(img, el, alpha, codes, tol=0.25)
+    assert sorted(np.unique(a).tolist()) == [24, 32]
+    assert len(a) == 8 * 8 - 4 - 4  # every pixel but the blend and the ground
+    assert element_whole([a]) == pytest.approx((32 * 32 + 24 * 24) / 56)
+    # the codes scaled by a pixel's element weight read the same (the copy is seen through a haze)
+    assert np.array_equal(piece_areas(img * 0.48, el * 0.6, alpha * 0.8, codes, tol=0.25), a)
+    assert element_whole([]) is None
+
+
+def test_element_whole_halves_for_cut_elements_and_falls_for_confetti():
+    from wast3d.cameras import Camera, look_at
+    from wast3d.render import element_pieces
+
+    s = style_scene("pebbles", 6000)
+    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
+                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    whole_copies = torch.where(s.element > 0, s.element.long(), -1)
+    whole = element_whole(element_pieces(s, whole_copies, [cam], tol=0.25))
+    # every pebble cut in two across x through its centre: pieces half as large
+    centre = torch.zeros(int(s.element.max()) + 1, 3).index_add_(0, s.element.long(), s.means)
+    centre = centre / torch.bincount(s.element.long()).clamp_min(1)[:, None]
+    halves = torch.where(s.element > 0, 2 * s.element.long() + (s.means[:, 0] > centre[s.element.long(), 0]).long(), -1)
+    half = element_whole(element_pieces(s, halves, [cam], tol=0.25))
+    assert 0.3 < half / whole < 0.6  # half, less the seam's blended pixels (0.39 here)
+    # the same Gaussians with their positions shuffled among the pebbles: no piece larger than a few pixels
+    g = torch.Generator().manual_seed(0)
+    idx = (s.element > 0).nonzero().squeeze(1)
+    means = s.means.clone()
+    means[idx] = s.means[idx[torch.randperm(len(idx), generator=g)]]
+    from dataclasses import replace
+    confetti = element_whole(element_pieces(replace(s, means=means), whole_copies, [cam], tol=0.25))
+    assert confetti / whole < 0.1
 
 
 def _copies(n_el=6, per=40, seed=0):

@@ -230,6 +230,8 @@ def test_whole_dag_artifacts(tiny_run):
     ref = json.loads((r / "render/texture_reference/blob__peb/render.json").read_text())
     assert ref["element_length"] > 0 and ref["s0"] > 0
     assert t1.coarse_chamfer.notna().all() and (t1.coarse_chamfer[kept] < 0.5).all()
+    # no copy of a style element in the content or a colour transfer; ours shows pieces of them
+    assert (t1.element_whole_ratio[kept] == 0).all() and (t1.element_whole_ratio[~kept] > 0).all()
     assert (t1.colour_sinkhorn[t1.run == "colour_ot"] < t1.colour_sinkhorn[t1.run == "input"].iloc[0]).all()
     assert np.isfinite(t1.time_s[t1.run != "input"]).all() and (t1.peak_mem_mb[t1.run != "input"] > 0).all()
     assert "not computed" not in (r / "tables/table1.md").read_text()

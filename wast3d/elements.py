@@ -29,6 +29,24 @@ every Gaussian of a result knows which element of the style it came from.
     Gaussians are left out (an element cut at the edge of a cluster's footprint to a sliver has no
     shape to keep).
 
+``element_whole``
+    How large the element pieces a viewer sees are: the pixel-weighted mean area of the visible
+    *pieces* (connected pixels drawn by one element copy), on the same views as ``element_share``, and
+    its ratio to the style's own (its texture reference, at the result's pixel scale). Each copy gets
+    a random code c in [0, 1]^D (D = ``PIECE_DIM``, the ground 0) and the renders of the codes give
+    per pixel v = render(codes) / render(element channel): a pixel drawn by one copy reads that copy's
+    code, a blend of copies (copies piled on each other, or an element seen through another) reads
+    none. An element pixel (``element_pixels`` > 0.5, alpha > ``min_alpha``) belongs to the copy whose
+    code c is nearest, if within ``piece_tol`` times the distance from c to the nearest other code (a
+    blend in which other copies weigh ``piece_tol`` or more is in no piece, however close two random codes
+    fall); 4-neighbours of the same copy join one piece, and
+
+        element_whole = sum_p area(piece(p)) / #pixels p in pieces.
+
+    Its elements cut into fragments by the clusters' edges, or overlapping so that no one shows whole,
+    lower it (the guitar x trained stones' gravel with specks); a copy that stays whole and unhidden
+    scores its element's full area. Whether the element reads as a dome (its shading) it does not see.
+
 ``element_diameter``
     The median over elements of twice the 90th-percentile distance of an element's Gaussians to its
     centroid (robust to a stray Gaussian). Registration does not use it (its scale rule needs no
@@ -54,6 +72,12 @@ class ElementConfig:
     min_size: int = option(4, "element_intact: element copies with fewer Gaussians are left out", minimum=2)
     min_alpha: float = option(0.5, "element_share: pixels above this alpha are foreground",
                                    exclusiveMinimum=0, exclusiveMaximum=1)
+    piece_tol: float = option(0.25, "element_whole: a pixel is a copy's where the other copies weigh less than this "
+                                    "share of it (its code within this share of the distance from the copy's code "
+                                    "to the nearest other)", exclusiveMinimum=0, exclusiveMaximum=0.5)
+
+
+PIECE_DIM = 6  # element_whole's code length: two 3-channel renders
 
 
 
@@ -75,6 +99,54 @@ def element_share(element_frames: torch.Tensor, alpha: torch.Tensor, min_alpha: 
     if not bool(fg.any()):
         raise ValueError(f"element share: no foreground pixel (alpha > {min_alpha})")
     return float(((element_frames > 0.5) & fg).sum() / fg.sum())
+
+
+def copy_codes(copies: torch.Tensor, seed: int = 0, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """[N] copy id of each Gaussian (-1: the ground) -> (per-Gaussian colours [N, PIECE_DIM], the ground
+    0; the distinct copies' codes [C, PIECE_DIM], uniform in [0, 1], row c for the c-th smallest id)."""
+    ids, inv = torch.unique(copies, return_inverse=True)
+    codes = torch.rand(len(ids), PIECE_DIM, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    cols = codes[inv].to(dtype)
+    cols[copies < 0] = 0
+    return cols, codes[ids >= 0]
+
+
+def piece_areas(code_rgb: torch.Tensor, element: torch.Tensor, alpha: torch.Tensor, codes: torch.Tensor,
+                tol: float, min_alpha: float = 0.5) -> np.ndarray:
+    """One view of ``element_whole``: code_rgb [H, W, PIECE_DIM] (the render of :func:`copy_codes`'s colours
+    on black), element [H, W] (:func:`element_pixels`), alpha [H, W], codes [C, PIECE_DIM] -> the area of
+    its piece for every pixel in a piece ([P], pixels; empty where none)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    el = ((element > 0.5) & (alpha > min_alpha)).numpy()
+    if len(codes) == 0 or not el.any():
+        return np.zeros(0, dtype=np.int64)
+    w = (element * alpha).clamp_min(1e-6)[..., None]  # the element Gaussians' blending weight
+    v = (code_rgb / w).double().numpy()[el]
+    tree = cKDTree(codes.double().numpy())
+    # each code's distance to its nearest other code: a blend with another copy moves a pixel off the
+    # code by its weight times their distance, so the tolerance is a share of that distance
+    gap = tree.query(codes.double().numpy(), k=2)[0][:, 1] if len(codes) > 1 else np.full(1, np.inf)
+    d, j = tree.query(v)
+    owner = np.full(el.shape, -1, dtype=np.int64)
+    owner[el] = np.where(d <= tol * gap[j], j, -1)
+    # pieces: the connected components of the graph joining 4-neighbours of one owner
+    H, W = owner.shape
+    idx = np.arange(H * W).reshape(H, W)
+    pairs = [(owner[:, :-1], owner[:, 1:], idx[:, :-1], idx[:, 1:]), (owner[:-1], owner[1:], idx[:-1], idx[1:])]
+    a = np.concatenate([ia[(oa == ob) & (oa >= 0)] for oa, ob, ia, ib in pairs])
+    b = np.concatenate([ib[(oa == ob) & (oa >= 0)] for oa, ob, ia, ib in pairs])
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(H * W, H * W))
+    piece = connected_components(graph, directed=False)[1][(owner >= 0).ravel()]
+    return np.bincount(piece)[piece]
+
+
+def element_whole(areas: list[np.ndarray]) -> float | None:
+    """Per-view :func:`piece_areas` -> the pixel-weighted mean piece area (None: no pixel in a piece)."""
+    a = np.concatenate([np.asarray(x, dtype=np.float64) for x in areas]) if areas else np.zeros(0)
+    return float(a.mean()) if len(a) else None
 
 
 def similarity_residuals(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:

@@ -357,34 +357,50 @@ def element_coverage(frames: torch.Tensor, reference: torch.Tensor, content, con
 
 def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, style_frames: torch.Tensor,
                       texture_reference: Path, stylize_npz: Path | None, cfg) -> dict:
-    """The element metrics of one result (:mod:`wast3d.elements`): ``element_share`` of the result's
-    turntable (``frames``) against the style's texture reference (``style_frames``, read from
-    ``texture_reference``), and ``element_intact`` against the collage (the positions before
-    optimization in ``stylize_npz``)."""
-    from .elements import copy_ids, element_intact, element_share
-    from .render import read_element_frames
+    """The element metrics of one result (:mod:`wast3d.elements`): ``element_share`` and ``element_whole``
+    of the result's turntable (``frames``, cameras in ``result_render``) against the style's texture
+    reference (``style_frames``, read from ``texture_reference``), and ``element_intact`` against the
+    collage (the positions before optimization in ``stylize_npz``)."""
+    from .elements import copy_ids, element_intact, element_share, element_whole
+    from .render import element_pieces, read_cameras, read_element_frames
 
-    out = {"element_share": None, "element_share_style": None, "element_share_ratio": None, "element_intact": None}
+    out = {"element_share": None, "element_share_style": None, "element_share_ratio": None, "element_intact": None,
+           "element_whole": None, "element_whole_style": None, "element_whole_ratio": None}
     style_el = read_element_frames(texture_reference)
     if style.element is None or style_el is None:
         return {**out, "element_status": "not computed: the style has no element labels"}
     out["element_share_style"] = element_share(style_el, style_frames[..., 3], cfg.min_alpha)
+    out["element_whole_style"] = element_whole(element_pieces(
+        style, torch.where(style.element > 0, style.element.long(), -1), read_cameras(texture_reference, len(style_frames)),
+        cfg.piece_tol, cfg.min_alpha))
     res_el = read_element_frames(result_render)
     # an unlabelled result (the content, a colour transfer) has no Gaussian of the style: no element pixel
     out["element_share"] = 0.0 if res_el is None else element_share(res_el, frames[..., 3], cfg.min_alpha)
     out["element_share_ratio"] = out["element_share"] / max(out["element_share_style"], 1e-12)
     status = "share computed"
+    clusters = None
     if stylize_npz is not None and result.element is not None:
         d = load_npz(stylize_npz, required=("labels", "before_means"))
         if len(d["labels"]) != len(result):
             raise ValueError(f"{stylize_npz}: 'labels' has {len(d['labels'])} entries, the result {len(result)} Gaussians")
-        intact = element_intact(torch.from_numpy(d["before_means"]), result.means,
-                                copy_ids(result.element, torch.from_numpy(d["labels"])), cfg)
+        clusters = torch.from_numpy(d["labels"])
+        intact = element_intact(torch.from_numpy(d["before_means"]), result.means, copy_ids(result.element, clusters), cfg)
         out["element_intact"] = intact.pop("intact")
         out["element_intact_detail"] = intact
         status += ", intact computed"
     else:
         status += "; intact not computed (no stylized elements)"
+    if out["element_whole_style"]:
+        whole = 0.0  # no copy of an element (the content, a colour transfer): no piece
+        if result.element is not None:
+            # a result's copies: one element selected by one cluster (one copy per element without clusters)
+            copies = (copy_ids(result.element, clusters) if clusters is not None
+                      else torch.where(result.element > 0, result.element.long(), -1))
+            whole = element_whole(element_pieces(result, copies, read_cameras(result_render, len(frames)),
+                                                 cfg.piece_tol, cfg.min_alpha)) or 0.0
+        out["element_whole"] = whole
+        out["element_whole_ratio"] = whole / out["element_whole_style"]
+        status += ", whole computed"
     return {**out, "element_status": status}
 
 

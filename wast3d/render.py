@@ -204,6 +204,40 @@ def camera_dicts(cams: list[Camera]) -> list[dict]:
              "width": c.width, "height": c.height} for c in cams]
 
 
+def read_cameras(folder: str | Path, n: int | None = None) -> list[Camera]:
+    """The first ``n`` (all: None) cameras of ``folder/render.json`` (:func:`camera_dicts`'s inverse)."""
+    from .io_utils import read_json
+
+    path = Path(folder) / "render.json"
+    cams = read_json(path).get("cameras")
+    if not isinstance(cams, list) or (n is not None and len(cams) < n):
+        raise ValueError(f"{path}: 'cameras' must list {n or 'the'} cameras")
+    try:
+        return [Camera(torch.tensor(c["world_to_cam"], dtype=torch.float32), c["fx"], c["fy"], c["cx"], c["cy"],
+                       c["width"], c["height"]) for c in cams[:n]]
+    except (KeyError, TypeError) as e:
+        raise ValueError(f"{path}: a camera lacks a field ({e})") from None
+
+
+@torch.no_grad()
+def element_pieces(scene: GaussianScene, copies: torch.Tensor, cams: list[Camera], tol: float,
+                   min_alpha: float = 0.5) -> list[np.ndarray]:
+    """The visible element pieces of a labelled scene (:func:`wast3d.elements.piece_areas`, per camera):
+    ``copies`` [N] each Gaussian's element copy (-1: the ground); two renders of the copies' codes and
+    one of the label channel per view."""
+    from .elements import PIECE_DIM, copy_codes, element_pixels, label_colours, piece_areas
+
+    cols, codes = copy_codes(copies, dtype=scene.dtype)
+    lab = label_colours(copies + 1, scene.dtype)
+    out = []
+    for cam in cams:
+        m = rasterize(scene, cam, colors=lab)
+        code = torch.cat([rasterize(scene, cam, colors=cols[:, i:i + 3].contiguous()).rgb
+                          for i in range(0, PIECE_DIM, 3)], -1)
+        out.append(piece_areas(code, element_pixels(m.rgb, m.alpha), m.alpha, codes, tol, min_alpha))
+    return out
+
+
 def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
                      progress: bool = False) -> dict:
     """Write the turntable and close-up of ``scene`` (cameras from ``reference``) under ``out_dir``:
