@@ -828,6 +828,64 @@ def test_a_thinned_selection_reaches_stylize_enlarged():
                           capped.log_gain[out.labels][:, None].to(out.scene.log_scales).expand(-1, 3), atol=1e-5)
 
 
+def test_coherence_makes_interleaved_clusters_contiguous():
+    """clustering.contiguous: two clusters interleaved at random over a plane (a split by noisy normals)
+    become patches whose points' neighbours share their label; two clean halves stay as they are; and
+    ClusterConfig.coherence does the same to k-means clusters that colour interleaves."""
+    from wast3d.clustering import contiguous
+    from wast3d.geometry import knn
+
+    g = torch.Generator().manual_seed(0)
+    pts = torch.cat([torch.rand(4000, 2, generator=g), torch.zeros(4000, 1)], 1).double()
+    _, nb = knn(pts.float(), pts.float(), 8, exclude_self=True)
+
+    def same(lab):
+        return float((torch.from_numpy(lab)[nb] == torch.from_numpy(lab)[:, None]).double().mean())
+    noisy = (torch.rand(4000, generator=g) < 0.5).long().numpy()
+    clean = (pts[:, 0] > 0.5).long().numpy()
+    out, changed = contiguous(noisy, pts.numpy(), 3)
+    assert same(noisy) < 0.55 and same(out) > 0.85 and changed > 0.2
+    kept, moved = contiguous(clean, pts.numpy(), 3)
+    assert (kept == clean).mean() > 0.99 and moved < 0.01
+    # k-means on position and a random colour weighted heavily interleaves; coherence makes patches of it
+    rgb = torch.rand(4000, 3, generator=g)
+    cfg = ClusterConfig(target_cluster_size=500, flatness=0.0, colour_weight=2.0)
+    mixed = kmeans(pts.float(), rgb, cfg)[0]
+    patches = kmeans(pts.float(), rgb, replace(cfg, coherence=3))[0]
+    assert same(mixed) < 0.5 < 0.8 < same(patches), (same(mixed), same(patches))
+
+
+def test_trim_keeps_the_part_copies_over_their_own_cluster():
+    """stylize.trim: a part copy stays where at least ``trim`` of it lies over its cluster's own content
+    (own_copies); in a collage of the ant the kept Gaussians lie over their own cluster more often than
+    the untrimmed footprints', which overlap; trim 0 keeps every selected Gaussian."""
+    from wast3d.geometry import knn
+    from wast3d.procedural import make_scene
+    from wast3d.stylize import StylizeConfig, own_copies, stylize
+
+    nearest = torch.tensor([0, 0, 1, 1, 1, 0])
+    part = torch.tensor([7, 7, 7, 7, 3, 3])
+    assert own_copies(nearest, 0, part, 0.5).tolist() == [True] * 4 + [True] * 2  # both parts half the cluster's
+    assert own_copies(nearest, 0, part, 0.6).tolist() == [False] * 6
+    assert own_copies(nearest, 1, None, 0.5).tolist() == [False, False, True, True, True, False]  # one by one
+
+    content = make_scene("content", "ant", 600)
+    style = make_scene("style", "pebbles", 6000, seed=0)
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
+                                                                           refine_iterations=5))
+    sel = select_with(SelectConfig(), reg.apply(content.means.double(), labels), labels, style.means.double(),
+                      reg.style_spacing)
+    full = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=0), progress=False)
+    trimmed = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=0, trim=0.5), progress=False)
+    assert len(full.scene) == int(sel.sizes.sum()) and len(trimmed.scene) < len(full.scene)
+
+    def own(out):  # the share of a collage's Gaussians whose nearest content point is in their cluster
+        return float((labels[knn(out.scene.means.float(), content.means.float(), 1)[1][:, 0]] == out.labels)
+                     .double().mean())
+    assert own(trimmed) > own(full) and own(trimmed) > 0.97, (own(full), own(trimmed))  # 0.961 -> 0.984
+
+
 def test_smoothing_where_the_parts_are_left_out(caplog):
     """stylize's default smooths the flow's steps on a steep style (grass: no parts), within a quarter
     relief length, and leaves the smoothing out where parts move a gentle one (pebbles), saying which

@@ -40,6 +40,11 @@ class ClusterConfig:
     colour_weight: float = option(0.2, "weight of RGB against positions normalized to the unit ball", minimum=0)
     flatness: float = option(0.5, "split clusters whose mean outward unit normal is shorter than this, in two by their "
                                   "normals, until flat (0: off, the paper)", minimum=0, maximum=1)
+    coherence: int = option(0, "passes of a majority vote among each point's 16 nearest neighbours after k-means and "
+                               "the splits: clusters become contiguous patches (k-means on position and colour "
+                               "interleaves them on a textured capture, and a split by noisy normals into halves that"
+                               " interleave: the guitar's points had 57 % of their 8 nearest in their own cluster, "
+                               "the ant's 87 %); 0: off", minimum=0)
     min_split: int = option(100, "a split never makes a cluster smaller than this many points", minimum=1)
     min_size: int = option(4, "smaller clusters are merged into their nearest neighbour", minimum=1)
     seed: int = option(0, "k-means seed")
@@ -79,16 +84,46 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
         if normals is None or tuple(normals.shape) != tuple(means.shape):
             raise ValueError("k-means: flatness > 0 needs an outward normal [N, 3] per point")
         labels, split = split_wrapped(labels, normals.detach().double().cpu().numpy(), cfg)
+    changed = 0
+    if cfg.coherence:
+        labels, changed = contiguous(labels, x, cfg.coherence)
     K = labels.max() + 1
     cent = np.stack([x[labels == i].mean(0) for i in range(K)])
     sizes = np.bincount(labels, minlength=K)
     info = {"algorithm": algo, "requested_clusters": k, "clusters": int(K), "merged_small_clusters": merged,
-            "split_wrapped_clusters": split,
+            "split_wrapped_clusters": split, "coherence_relabelled": changed,
             "size_min": int(sizes.min()), "size_median": float(np.median(sizes)), "size_max": int(sizes.max()),
             "points": n}
     log.info("k-means (%s): %d clusters of %d..%d points (median %.0f)", algo, K, sizes.min(), sizes.max(),
              np.median(sizes))
     return labels.astype(np.int64), cent, info
+
+
+COHERENCE_K = 16  # neighbours of the majority vote (clustering.contiguous)
+
+
+def contiguous(labels: np.ndarray, points: np.ndarray, passes: int, k: int = COHERENCE_K) -> tuple[np.ndarray, int]:
+    """``passes`` rounds of: every point [N, 3] takes the most common label among itself and its ``k``
+    nearest neighbours (a tie with its own label keeps it) -> labels renumbered 0..K'-1 (a cluster voted away
+    disappears), and the share of points relabelled."""
+    from .geometry import kdtree
+
+    k = min(k, len(points) - 1)
+    if k < 1 or passes < 1:
+        return labels, 0.0
+    nb = kdtree(points).query(points, k=k + 1)[1]  # itself first
+    lab = labels.copy()
+    for _ in range(passes):
+        new = np.empty_like(lab)
+        for a in range(0, len(lab), 100_000):  # [chunk, k+1, k+1] agreements at once
+            votes = lab[nb[a:a + 100_000]]
+            agree = (votes[:, :, None] == votes[:, None, :]).sum(-1)
+            new[a:a + 100_000] = votes[np.arange(len(votes)), agree.argmax(1)]  # a tie keeps the first: itself
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    changed = float((lab != labels).mean())
+    return np.unique(lab, return_inverse=True)[1].astype(labels.dtype), changed
 
 
 def _merge_small(labels: np.ndarray, feats: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:

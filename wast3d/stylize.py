@@ -151,6 +151,11 @@ class StylizeConfig:
                                            "every direction (pebbles, boulders: 0.08-0.13), not blades or a weave (0.26-"
                                            "0.34), which rigid parts would tear; a large value: parts on "
                                            "every style", minimum=0)
+    trim: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster; one Gaussian where the "
+                              "parts are left out) is dropped where less than this share of it lies over the cluster's "
+                              "own content (its nearest content point, registered back, in the cluster): the "
+                              "neighbours' footprints overlap, and their copies piled on each other show no element "
+                              "whole; 0: every selected Gaussian flows", minimum=0, maximum=1)
     sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
 
     def __post_init__(self):  # a sinkhorn block given as a dict becomes its dataclass (the options: @checked)
@@ -654,6 +659,19 @@ class Stylized:
     before_means: torch.Tensor
 
 
+def own_copies(nearest: torch.Tensor, cluster: int, part: torch.Tensor | None, share: float) -> torch.Tensor:
+    """``stylize.trim`` for one cluster: nearest [S] the cluster of each selected Gaussian's nearest content
+    point (registered back into the content's frame), part [S] its flow part (None: each Gaussian its own)
+    -> [S] bool, the Gaussians of the part copies with at least ``share`` of their Gaussians over the
+    cluster's own content."""
+    own = (nearest == cluster).double()
+    if part is None:
+        return own >= share
+    ids, inv = torch.unique(part, return_inverse=True)
+    frac = torch.zeros(len(ids), dtype=own.dtype).index_add_(0, inv, own) / torch.bincount(inv).to(own.dtype)
+    return frac[inv] >= share
+
+
 def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, selection,
             cfg: StylizeConfig, progress: bool = True) -> Stylized:
     """Run eq. 9 over all clusters (:class:`Stylized`); ``selection``: a :class:`~wast3d.selection.Selection`
@@ -670,6 +688,11 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smooth_with_parts false)")
         cfg = replace(cfg, smooth_passes=0)
     reach = smoothing_reach(style, reg.style_up.tolist(), cfg)
+    tree = None
+    if cfg.trim > 0:
+        from .geometry import kdtree
+
+        tree, trimmed, total = kdtree(cm.numpy()), 0, 0
     todo, pairs = [], []
     for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
@@ -677,6 +700,14 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         if len(sel) == 0 or not bool(m.any()):
             log.warning("stylize: cluster %d is empty (content %d, style %d); skipped", i, int(m.sum()), len(sel))
             continue
+        if tree is not None:
+            back = reg.inverse(style.means[sel].double(), torch.full((len(sel),), i, dtype=torch.long))
+            nearest = labels.long()[torch.from_numpy(tree.query(back.numpy())[1])]
+            keep = own_copies(nearest, i, None if part is None else part[sel], cfg.trim)
+            total += len(sel)
+            if bool(keep.any()):  # a cluster none of whose copies is its own keeps them all
+                trimmed += int((~keep).sum())
+                sel = sel[keep]
         sub = style.subset(sel)
         if float(selection.log_gain[i]) != 0.0:  # a thinned cluster: its Gaussians enlarged (selection.thin)
             sub = replace(sub, log_scales=sub.log_scales + float(selection.log_gain[i]))
@@ -688,6 +719,11 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
                                  y_part=None if part is None else part[sel], y_reach=reach))
     if not pairs:
         raise ValueError("stylize: no non-empty cluster")
+    if tree is not None:
+        log.info("stylize: trim %.2f dropped %d of %d selected Gaussians (%.1f %%): part copies mostly over the "
+                 "neighbouring clusters' content", cfg.trim, trimmed, total, 100.0 * trimmed / max(total, 1))
+    else:
+        log.info("stylize: trim 0: every selected Gaussian flows, the neighbours' overlapping copies included")
     results = stylize_in_batches(pairs, cfg, progress, up=reg.style_up)
     parts, before_parts, labs, curves, secs = [], [], [], [], []
     for (i, sel, sub), res in zip(todo, results):
