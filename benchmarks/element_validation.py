@@ -81,7 +81,8 @@ def main(argv=None) -> None:
         conf = element_intact(before, shuffled, copy_ids(res.element, clusters), cfg)
         own = json.loads(Path(artifact("eval", a.results, content=content, style=style, method="default")).read_text())
         whole_style = own["element_whole_style"]
-        cams = read_cameras(artifact("render_pair", a.results, content=content, style=style, method="default"), 24)
+        render_dir = Path(artifact("render_pair", a.results, content=content, style=style, method="default"))
+        cams = read_cameras(render_dir, json.loads((render_dir / "render.json").read_text())["frames"])
         whole = element_whole(element_pieces(replace(res, means=shuffled), copy_ids(res.element, clusters), cams,
                                              cfg.piece_tol, cfg.min_alpha)) or 0.0
         row = {"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
@@ -91,7 +92,8 @@ def main(argv=None) -> None:
             row.update(texture_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
         rows.append(row)
         sty = read_ply(own["style"])
-        ref_cams = read_cameras(artifact("texture_reference", a.results, content=content, style=style), 24)
+        ref_dir = Path(artifact("texture_reference", a.results, content=content, style=style))
+        ref_cams = read_cameras(ref_dir, json.loads((ref_dir / "render.json").read_text())["frames"])
         for axes, role in ((1, "style, elements cut in two (known ~0.5)"), (2, "style, elements cut in four (~0.25)")):
             cut = cut_elements(sty.means, sty.element, axes)
             w = element_whole(element_pieces(sty, cut, ref_cams, cfg.piece_tol, cfg.min_alpha)) or 0.0
@@ -114,7 +116,7 @@ def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch
         vecs = torch.linalg.eigh(p.T @ p)[1].flip(1)[:, :axes]  # longest first
         proj = p @ vecs
         bits = (proj > proj.median(0).values).long() @ (2 ** torch.arange(axes))
-        out[idx] = int(j) * 4 + bits
+        out[idx] = int(j) * 2 ** axes + bits
     return out
 
 

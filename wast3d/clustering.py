@@ -84,7 +84,7 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
         if normals is None or tuple(normals.shape) != tuple(means.shape):
             raise ValueError("k-means: flatness > 0 needs an outward normal [N, 3] per point")
         labels, split = split_wrapped(labels, normals.detach().double().cpu().numpy(), cfg)
-    changed = 0
+    changed = 0.0
     if cfg.coherence:
         labels, changed = contiguous(labels, x, cfg.coherence)
     K = labels.max() + 1
@@ -102,7 +102,7 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
 COHERENCE_K = 16  # neighbours of the majority vote (clustering.contiguous)
 
 
-def contiguous(labels: np.ndarray, points: np.ndarray, passes: int, k: int = COHERENCE_K) -> tuple[np.ndarray, int]:
+def contiguous(labels: np.ndarray, points: np.ndarray, passes: int, k: int = COHERENCE_K) -> tuple[np.ndarray, float]:
     """``passes`` rounds of: every point [N, 3] takes the most common label among itself and its ``k``
     nearest neighbours (a tie with its own label keeps it) -> labels renumbered 0..K'-1 (a cluster voted away
     disappears), and the share of points relabelled."""

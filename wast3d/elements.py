@@ -135,9 +135,13 @@ def piece_areas(code_rgb: torch.Tensor, element: torch.Tensor, alpha: torch.Tens
     # pieces: the connected components of the graph joining 4-neighbours of one owner
     H, W = owner.shape
     idx = np.arange(H * W).reshape(H, W)
-    pairs = [(owner[:, :-1], owner[:, 1:], idx[:, :-1], idx[:, 1:]), (owner[:-1], owner[1:], idx[:-1], idx[1:])]
-    a = np.concatenate([ia[(oa == ob) & (oa >= 0)] for oa, ob, ia, ib in pairs])
-    b = np.concatenate([ib[(oa == ob) & (oa >= 0)] for oa, ob, ia, ib in pairs])
+    a, b = [], []
+    for oa, ob, ia, ib in ((owner[:, :-1], owner[:, 1:], idx[:, :-1], idx[:, 1:]),
+                           (owner[:-1], owner[1:], idx[:-1], idx[1:])):
+        joined = (oa == ob) & (oa >= 0)
+        a.append(ia[joined])
+        b.append(ib[joined])
+    a, b = np.concatenate(a), np.concatenate(b)
     graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(H * W, H * W))
     piece = connected_components(graph, directed=False)[1][(owner >= 0).ravel()]
     return np.bincount(piece)[piece]
