@@ -886,6 +886,52 @@ def test_trim_keeps_the_part_copies_over_their_own_cluster():
     assert own(trimmed) > own(full) and own(trimmed) > 0.97, (own(full), own(trimmed))  # 0.961 -> 0.984
 
 
+def test_complete_makes_each_part_copy_whole_or_drops_it():
+    """stylize.complete: a part copy holding at least ``complete`` of its part becomes the whole part, one
+    holding less is dropped (whole_copies); in a collage of ant x pebbles every part a cluster keeps is
+    then whole, and the pebbles' element copies hold more of their pebble than the footprint's cut ones
+    (uncapped: a thinned cluster holds a random subset and is left as selected)."""
+    from wast3d.procedural import make_scene
+    from wast3d.stylize import StylizeConfig, flow_parts, part_copies, stylize
+
+    part = torch.tensor([0, 0, 0, 0, 1, 1, 2, 2, 2, 2])
+    size = torch.bincount(part)
+    pc = part_copies(torch.tensor([0, 1, 4, 6]), part, size, 0.5, 0.4)
+    assert (pc.whole.tolist(), pc.kept.tolist(), pc.cut.tolist()) == ([0, 1, 2, 3, 4, 5], [], [6])
+    pc = part_copies(torch.tensor([0, 6]), part, size, 0.5, 0.2)  # a quarter of each: neither whole nor cut
+    assert (pc.whole.tolist(), pc.kept.tolist(), pc.cut.tolist()) == ([], [0, 6], [])
+
+    content = make_scene("content", "ant", 600)
+    style = make_scene("style", "pebbles", 6000, seed=0)
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
+                                                                           refine_iterations=5))
+    sel = select_with(SelectConfig(max_per_point=0), reg.apply(content.means.double(), labels), labels, style.means.double(),
+                      reg.style_spacing)
+    cfg = StylizeConfig(iterations=0)
+    full = stylize(content, labels, style, reg, sel, cfg, progress=False)
+    whole = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5, drop=0.5), progress=False)
+    grown = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5), progress=False)
+    assert len(whole.scene) != len(full.scene) and len(grown.scene) > len(full.scene)  # complete alone only adds
+    parts = flow_parts(style, reg.style_up.tolist(), cfg)
+    assert parts is not None
+
+    def held(out):  # per (cluster, part) and (cluster, pebble) copy: the share of its part / pebble it holds
+        src = knn(reg.apply(out.scene.means.double(), out.labels).float(), style.means.float(), 1)[1][:, 0]
+        shares = []
+        for ids in (parts, style.element):
+            m = ids[src] >= (0 if ids is parts else 1)  # the pebbles' copies, not the ground's
+            key = out.labels[m] * (int(ids.max()) + 1) + ids[src][m]
+            k, n = torch.unique(key, return_counts=True)
+            shares.append(n.double() / torch.bincount(ids)[k % (int(ids.max()) + 1)].double())
+        return shares
+
+    part_full, elem_full = held(full)
+    part_whole, elem_whole = held(whole)
+    assert float(part_full.min()) < 0.5 and bool((part_whole > 1 - 1e-9).all())
+    assert float(elem_whole.median()) > float(elem_full.median()), (elem_full.median(), elem_whole.median())
+
+
 def test_smoothing_where_the_parts_are_left_out(caplog):
     """stylize's default smooths the flow's steps on a steep style (grass: no parts), within a quarter
     relief length, and leaves the smoothing out where parts move a gentle one (pebbles), saying which

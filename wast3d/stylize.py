@@ -156,6 +156,13 @@ class StylizeConfig:
                               "own content (its nearest content point, registered back, in the cluster): the "
                               "neighbours' footprints overlap, and their copies piled on each other show no element "
                               "whole; 0: every selected Gaussian flows", minimum=0, maximum=1)
+    complete: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster) holding at least "
+                                  "this share of its part is completed to the whole part (the footprint cuts elements"
+                                  " at a cluster's edge: a trained boulder copy held a median third of its boulder); "
+                                  "only where parts are on, on clusters the selection did not thin, before trim; 0: "
+                                  "off", minimum=0, maximum=1)
+    drop: float = option(0.0, "a part copy holding less than this share of its part is dropped (with complete: the "
+                              "fragments left beside the completed copies); 0: off", minimum=0, maximum=1)
     sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
 
     def __post_init__(self):  # a sinkhorn block given as a dict becomes its dataclass (the options: @checked)
@@ -672,6 +679,52 @@ def own_copies(nearest: torch.Tensor, cluster: int, part: torch.Tensor | None, s
     return frac[inv] >= share
 
 
+@dataclass(frozen=True)
+class PartCopies:
+    """One cluster's selection split by ``stylize.complete`` / ``drop`` (sorted style indices): ``whole``
+    the parts it holds at least ``complete`` of, each whole; ``kept`` the copies left as selected;
+    ``cut`` the copies holding less than ``drop``."""
+
+    whole: torch.Tensor
+    kept: torch.Tensor
+    cut: torch.Tensor
+
+
+def part_copies(sel: torch.Tensor, part: torch.Tensor, part_size: torch.Tensor, complete: float,
+                drop: float) -> PartCopies:
+    """sel [S] one cluster's selected style indices, part [M] each style Gaussian's flow part, part_size [P]
+    Gaussians per part -> :class:`PartCopies` (``complete`` 0: nothing completed; ``drop`` 0: nothing cut)."""
+    ids, held = torch.unique(part[sel], return_counts=True)
+    share = held.double() / part_size[ids].double()
+    whole = ids[share >= complete] if complete > 0 else ids[:0]
+    cut = ids[share < drop]
+    return PartCopies(torch.nonzero(torch.isin(part, whole)).squeeze(1),
+                      sel[~torch.isin(part[sel], torch.cat([whole, cut]))], sel[torch.isin(part[sel], cut)])
+
+
+def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig") -> list:
+    """``stylize.complete`` / ``drop`` over all clusters -> per cluster its style indices (sorted), or None
+    where left as selected: a thinned cluster (a random subset of its footprint), or one none of whose
+    copies is whole or kept."""
+    size = torch.bincount(part)
+    out, added, cut, thinned = [None] * (len(selection.offsets) - 1), 0, 0, 0
+    for i in range(len(out)):
+        sel = selection.indices[selection.offsets[i]:selection.offsets[i + 1]]
+        if len(sel) == 0 or float(selection.log_gain[i]) != 0.0:
+            thinned += len(sel) > 0
+            continue
+        c = part_copies(sel, part, size, cfg.complete, cfg.drop)
+        new = torch.sort(torch.cat([c.whole, c.kept]))[0]
+        if len(new):
+            added += len(c.whole) - (len(sel) - len(c.kept) - len(c.cut))  # the whole parts' Gaussians not selected
+            cut += len(c.cut)
+            out[i] = new
+    log.info("stylize: complete %.2f added %d Gaussians to part copies holding that share of their part, drop %.2f "
+             "left out %d of copies holding less%s", cfg.complete, added, cfg.drop, cut,
+             f"; {thinned} thinned clusters left as selected" if thinned else "")
+    return out
+
+
 def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, selection,
             cfg: StylizeConfig, progress: bool = True) -> Stylized:
     """Run eq. 9 over all clusters (:class:`Stylized`); ``selection``: a :class:`~wast3d.selection.Selection`
@@ -688,6 +741,10 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smooth_with_parts false)")
         cfg = replace(cfg, smooth_passes=0)
     reach = smoothing_reach(style, reg.style_up.tolist(), cfg)
+    completing = (cfg.complete > 0 or cfg.drop > 0) and part is not None
+    if (cfg.complete > 0 or cfg.drop > 0) and part is None:
+        log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.complete, cfg.drop)
+    completed = completed_selection(selection, part, cfg) if completing else [None] * K
     tree = None
     if cfg.trim > 0:
         from .geometry import kdtree
@@ -700,6 +757,8 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         if len(sel) == 0 or not bool(m.any()):
             log.warning("stylize: cluster %d is empty (content %d, style %d); skipped", i, int(m.sum()), len(sel))
             continue
+        if completed[i] is not None:
+            sel = completed[i]
         if tree is not None:
             back = reg.inverse(style.means[sel].double(), torch.full((len(sel),), i, dtype=torch.long))
             nearest = labels.long()[torch.from_numpy(tree.query(back.numpy())[1])]
