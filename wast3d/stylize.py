@@ -161,6 +161,9 @@ class StylizeConfig:
                                   " at a cluster's edge: a trained boulder copy held a median third of its boulder); "
                                   "only where parts are on, on clusters the selection did not thin, before trim; 0: "
                                   "off", minimum=0, maximum=1)
+    complete_height: float = option(0.0, "complete only the parts whose mean height (along the style's up) ranks above "
+                                         "this quantile of the parts' mean heights: the ones standing out of the "
+                                         "ground, mostly elements; 0: every part", minimum=0, maximum=1)
     drop: float = option(0.0, "a part copy holding less than this share of its part is dropped (with complete: the "
                               "fragments left beside the completed copies); 0: off", minimum=0, maximum=1)
     sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
@@ -691,29 +694,34 @@ class PartCopies:
 
 
 def part_copies(sel: torch.Tensor, part: torch.Tensor, part_size: torch.Tensor, complete: float,
-                drop: float) -> PartCopies:
+                drop: float, eligible: torch.Tensor | None = None) -> PartCopies:
     """sel [S] one cluster's selected style indices, part [M] each style Gaussian's flow part, part_size [P]
-    Gaussians per part -> :class:`PartCopies` (``complete`` 0: nothing completed; ``drop`` 0: nothing cut)."""
+    Gaussians per part -> :class:`PartCopies` (``complete`` 0: nothing completed; ``drop`` 0: nothing cut;
+    eligible [P] bool: the parts that may be completed, default all)."""
     ids, held = torch.unique(part[sel], return_counts=True)
     share = held.double() / part_size[ids].double()
-    whole = ids[share >= complete] if complete > 0 else ids[:0]
+    whole = ids[(share >= complete) & (True if eligible is None else eligible[ids])] if complete > 0 else ids[:0]
     cut = ids[share < drop]
     return PartCopies(torch.nonzero(torch.isin(part, whole)).squeeze(1),
                       sel[~torch.isin(part[sel], torch.cat([whole, cut]))], sel[torch.isin(part[sel], cut)])
 
 
-def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig") -> list:
+def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig", height: torch.Tensor) -> list:
     """``stylize.complete`` / ``drop`` over all clusters -> per cluster its style indices (sorted), or None
     where left as selected: a thinned cluster (a random subset of its footprint), or one none of whose
-    copies is whole or kept."""
+    copies is whole or kept. height [M]: each style Gaussian's height along its up (complete_height)."""
     size = torch.bincount(part)
+    eligible = None
+    if cfg.complete_height > 0:
+        mean_h = torch.zeros(len(size), dtype=torch.float64).index_add_(0, part, height.double()) / size.double()
+        eligible = mean_h > torch.quantile(mean_h, cfg.complete_height)
     out, added, cut, thinned = [None] * (len(selection.offsets) - 1), 0, 0, 0
     for i in range(len(out)):
         sel = selection.indices[selection.offsets[i]:selection.offsets[i + 1]]
         if len(sel) == 0 or float(selection.log_gain[i]) != 0.0:
             thinned += len(sel) > 0
             continue
-        c = part_copies(sel, part, size, cfg.complete, cfg.drop)
+        c = part_copies(sel, part, size, cfg.complete, cfg.drop, eligible)
         new = torch.sort(torch.cat([c.whole, c.kept]))[0]
         if len(new):
             added += len(c.whole) - (len(sel) - len(c.kept) - len(c.cut))  # the whole parts' Gaussians not selected
@@ -744,7 +752,8 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     completing = (cfg.complete > 0 or cfg.drop > 0) and part is not None
     if (cfg.complete > 0 or cfg.drop > 0) and part is None:
         log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.complete, cfg.drop)
-    completed = completed_selection(selection, part, cfg) if completing else [None] * K
+    height = style.means.double() @ reg.style_up.double()
+    completed = completed_selection(selection, part, cfg, height) if completing else [None] * K
     tree = None
     if cfg.trim > 0:
         from .geometry import kdtree
