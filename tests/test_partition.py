@@ -900,6 +900,8 @@ def test_complete_makes_each_part_copy_whole_or_drops_it():
     assert (pc.whole.tolist(), pc.kept.tolist(), pc.cut.tolist()) == ([0, 1, 2, 3, 4, 5], [], [6])
     pc = part_copies(torch.tensor([0, 6]), part, size, 0.5, 0.2)  # a quarter of each: neither whole nor cut
     assert (pc.whole.tolist(), pc.kept.tolist(), pc.cut.tolist()) == ([], [0, 6], [])
+    pc = part_copies(torch.tensor([0, 1, 4, 6]), part, size, 0.5, 0.0, eligible=torch.tensor([False, True, True]))
+    assert (pc.whole.tolist(), pc.kept.tolist(), pc.cut.tolist()) == ([4, 5], [0, 1, 6], [])  # part 0 not eligible
 
     content = make_scene("content", "ant", 600)
     style = make_scene("style", "pebbles", 6000, seed=0)
@@ -913,6 +915,8 @@ def test_complete_makes_each_part_copy_whole_or_drops_it():
     whole = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5, drop=0.5), progress=False)
     grown = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5), progress=False)
     assert len(whole.scene) != len(full.scene) and len(grown.scene) > len(full.scene)  # complete alone only adds
+    upper = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5, complete_height=0.5), progress=False)
+    assert len(full.scene) < len(upper.scene) < len(grown.scene)  # only the upper half of the parts completed
     parts = flow_parts(style, reg.style_up.tolist(), cfg)
     assert parts is not None
 

@@ -752,8 +752,9 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     completing = (cfg.complete > 0 or cfg.drop > 0) and part is not None
     if (cfg.complete > 0 or cfg.drop > 0) and part is None:
         log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.complete, cfg.drop)
-    height = style.means.double() @ reg.style_up.double()
-    completed = completed_selection(selection, part, cfg, height) if completing else [None] * K
+    completed = [None] * K
+    if completing:
+        completed = completed_selection(selection, part, cfg, style.means.double() @ reg.style_up.double())
     tree = None
     if cfg.trim > 0:
         from .geometry import kdtree
