@@ -100,7 +100,7 @@ def test_tiny_training_psnr_rises(tiny_dataset):
     assert math.isfinite(ev["ssim"]) and ev["gaussians"] <= 3000
 
 
-def test_resume_equals_uninterrupted(tiny_dataset, tmp_path):
+def test_resume_equals_uninterrupted(tiny_dataset, tmp_path, caplog):
     ds = load_blender(tiny_dataset, holdout_every=4)
     full = Trainer(ds, _cfg(iterations=100))
     full.train(progress=False)
@@ -113,6 +113,10 @@ def test_resume_equals_uninterrupted(tiny_dataset, tmp_path):
     assert resumed.step == 100
     for k in full.params:
         assert torch.equal(full.params[k], resumed.params[k]), k
+    other = Trainer(ds, _cfg(iterations=100, regularize=True))  # the checkpoint is another configuration's
+    with caplog.at_level("WARNING", logger="wast3d.pretrain"):
+        other.train(ck, progress=False, stop_at=3)
+    assert other.step == 3 and "regularize" in caplog.text and "starts over" in caplog.text
 
 
 def test_regularizers_reduce_anisotropy(tiny_dataset):

@@ -5,6 +5,7 @@ import copy
 import json
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -163,6 +164,26 @@ def test_a_style_outside_pairs_is_cleaned_as_in_them(tmp_path):
     cfg["scenes"]["given"] = {"source": "ply", "path": str(tmp_path / "given.ply")}
     r = snake(tmp_path, "-n", "-p", "results/register/blob__given/default/registration.npz", config=cfg)
     assert "results/scenes/given/style.ply" in r.stdout and jobs(r).get("style_clean") == 1, r.stdout[-2000:]
+
+
+def test_a_style_scene_is_pretrained_the_same_in_any_pairs(tmp_path):
+    """An images scene's pretraining follows its own `kind`, not the pairs of the config merged last: a
+    style once got the regularizers of eq. 1-2 only where `pairs` listed it, and a merged config's cached
+    scene was then the other pretraining. Without `kind` the config stops, naming the field."""
+    (tmp_path / "views").mkdir()
+    (tmp_path / "views" / "transforms_train.json").write_text("{}")
+    params = []
+    for pairs in ([["blob", "peb"], ["blob", "shot"]], [["blob", "peb"]]):
+        cfg = copy.deepcopy(TINY)
+        cfg["scenes"]["shot"] = {"source": "images", "kind": "style", "path": str(tmp_path / "views")}
+        cfg["pairs"] = pairs
+        r = snake(tmp_path, "-n", "-p", "results/scenes/shot/scene.ply", config=cfg)
+        cmd = next(line for line in r.stdout.splitlines() if " pretrain " in line and "--params" in line)
+        params.append(json.loads(shlex.split(cmd.split(" 2> ")[0])[-1]))
+    assert params[0] == params[1] and params[0]["regularize"] is True
+    del cfg["scenes"]["shot"]["kind"]
+    r = snake(tmp_path, "-n", config=cfg, check=False)
+    assert r.returncode != 0 and "scenes.shot: 'kind' (content or style) is required" in r.stdout + r.stderr
 
 
 def tiny_config(wd: Path) -> dict:

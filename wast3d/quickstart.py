@@ -28,14 +28,14 @@ def workflow_root() -> Path:
                             "Snakefile (a broken install: reinstall wast3d)")
 
 
-def scene_entry(path: Path) -> dict:
+def scene_entry(path: Path, kind: str) -> dict:
     """A ``scenes`` entry for a scene file (any format :func:`~wast3d.formats.read_scene` reads) or a
-    Blender folder of posed images."""
+    Blender folder of posed images (``kind`` content or style: a style's images are pretrained with eq. 1-2)."""
     path = Path(path).resolve()
     if path.is_dir():
         if not (path / "transforms_train.json").exists():
             raise ValueError(f"{path}: a folder must hold Blender-format posed images (transforms_train.json)")
-        return {"source": "images", "path": str(path)}
+        return {"source": "images", "kind": kind, "path": str(path)}
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
     from .formats import FORMATS
@@ -71,7 +71,7 @@ def two_scene_config(base: dict, content: Path, style: Path) -> dict:
     cfg = copy.deepcopy(base)
     c = scene_name(content, set())
     s = scene_name(style, {c})
-    cfg["scenes"] = {c: scene_entry(content), s: scene_entry(style)}
+    cfg["scenes"] = {c: scene_entry(content, "content"), s: scene_entry(style, "style")}
     cfg["pairs"] = [[c, s]]
     cfg["run"] = ["default"]
     labels = base.get("table1", {}).get("methods") or {}

@@ -11,6 +11,12 @@ import sys
 from snakemake.utils import validate
 
 
+# the one required key a scene's `source` alone does not say, named before the schema's whole-oneOf message
+for _name, _s in (config.get("scenes") or {}).items():
+    if isinstance(_s, dict) and _s.get("source") in ("images", "procedural") and "kind" not in _s:
+        raise ValueError(f"config: scenes.{_name}: 'kind' (content or style) is required for source {_s['source']}"
+                         + (": a style's images are pretrained with the regularizers of eq. 1-2, a content's without"
+                            if _s["source"] == "images" else ""))
 validate(config, schema="../schemas/config.schema.yaml")
 
 RESULTS = "results"
@@ -288,16 +294,17 @@ def summary_runs(experiments):
 
 
 def pretrain_params(scene):
-    """Style scenes are regularized (eq. 1 and 2) unless the scene's config says otherwise."""
-    is_style = scene in {s for _, s in PAIRS}
-    return {"regularize": is_style, **SCENES[scene].get("pretrain", {})}
+    """A scene of kind style is regularized (eq. 1 and 2) unless its pretrain block says otherwise; the kind
+    is the scene's, not its pairs', so one scene's cached pretraining does not depend on the config merged."""
+    return {"regularize": SCENES[scene]["kind"] == "style", **SCENES[scene].get("pretrain", {})}
 
 
 for _name, _s in SCENES.items():
     if _s["source"] == "images":
         _reg = pretrain_params(_name)["regularize"]
         logger.info(f"scene '{_name}': pretrained from images"
-                    + (" with the anisotropy / uniform-scale regularizers (used as a style)" if _reg else " without regularizers"))
+                    + (" with the anisotropy / uniform-scale regularizers" if _reg else " without regularizers")
+                    + f" (kind: {_s['kind']})")
 
 
 def method_ply(w):

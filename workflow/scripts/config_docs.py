@@ -65,7 +65,7 @@ re-runs that stage and what depends on it, nothing upstream (`docs/workflow.md`,
 | --- | --- | --- |
 | `procedural` | `kind` (`content` or `style`), `name` (content: `ant`, `airplane`, `nut`, `globe`, `torus`, `sphere`; style: `pebbles`, `grass`, `wicker`, `stones`), `n_gaussians`, `seed` | generated; no pretraining, no surface sampling |
 | `ply` | `path` (a trained 3DGS PLY), `drop_invalid` (drop rows with NaN/inf instead of stopping), `surface`, `style_clean` | imported; as a content surface-sampled unless `surface.enabled: false`, as a style cleaned unless `style_clean.enabled: false` |
-| `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `pretrain`, `surface`, `style_clean`, `labels_from` | pretrained (with eq. 1-2 when the scene is used as a style), then surface-sampled (content) or cleaned (style) |
+| `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `kind` (`content` or `style`), `pretrain`, `surface`, `style_clean`, `labels_from` | pretrained (with eq. 1-2 when `kind` is `style`), then surface-sampled (content) or cleaned (style) |
 """
 
 
