@@ -166,12 +166,6 @@ class StylizeConfig:
                                          "ground, mostly elements; 0: every part", minimum=0, maximum=1)
     drop: float = option(0.0, "a part copy holding less than this share of its part is dropped (with complete: the "
                               "fragments left beside the completed copies); 0: off", minimum=0, maximum=1)
-    complete_reach: float = option(0.0, "complete only the part copies at least this share of whose whole part, "
-                                        "registered back into the content's frame, lies within the cluster footprint's "
-                                        "own reach of the content (the 95th percentile of its selected Gaussians' "
-                                        "distances to their nearest content point): a part completed past a thin or "
-                                        "edged content (a plate, a leg) hangs in the air, and the rigid parts keep it "
-                                        "there; the others stay as selected; 0: off", minimum=0, maximum=1)
     sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
 
     def __post_init__(self):  # a sinkhorn block given as a dict becomes its dataclass (the options: @checked)
@@ -712,54 +706,29 @@ def part_copies(sel: torch.Tensor, part: torch.Tensor, part_size: torch.Tensor, 
                       sel[~torch.isin(part[sel], torch.cat([whole, cut]))], sel[torch.isin(part[sel], cut)])
 
 
-REACH_QUANTILE = 0.95  # complete_reach: a footprint's reach, robust to a few selected Gaussians far off the content
-
-
-def within_reach(part_of: torch.Tensor, dist: torch.Tensor, reach: float, share: float) -> torch.Tensor:
-    """complete_reach for one cluster's completed parts: part_of [n] the part of each of their Gaussians, dist [n]
-    its distance (registered back) to the nearest content point -> [P'] the parts (sorted ids) with at least
-    ``share`` of their Gaussians within ``reach``."""
-    ids, inv = torch.unique(part_of, return_inverse=True)
-    near = torch.zeros(len(ids), dtype=torch.float64).index_add_(0, inv, (dist <= reach).double())
-    return ids[near / torch.bincount(inv).double() >= share]
-
-
-def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig", height: torch.Tensor,
-                        content_distance=None) -> list:
+def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig", height: torch.Tensor) -> list:
     """``stylize.complete`` / ``drop`` over all clusters -> per cluster its style indices (sorted), or None
     where left as selected: a thinned cluster (a random subset of its footprint), or one none of whose
-    copies is whole or kept. height [M]: each style Gaussian's height along its up (complete_height);
-    content_distance(cluster, indices [n]) -> [n]: those style Gaussians' distances, registered back by the
-    cluster's transform, to their nearest content point (needed by complete_reach)."""
+    copies is whole or kept. height [M]: each style Gaussian's height along its up (complete_height)."""
     size = torch.bincount(part)
-    eligible = torch.ones(len(size), dtype=torch.bool)
+    eligible = None
     if cfg.complete_height > 0:
         mean_h = torch.zeros(len(size), dtype=torch.float64).index_add_(0, part, height.double()) / size.double()
         eligible = mean_h > torch.quantile(mean_h, cfg.complete_height)
-    out, added, cut, thinned, held = [None] * (len(selection.offsets) - 1), 0, 0, 0, 0
+    out, added, cut, thinned = [None] * (len(selection.offsets) - 1), 0, 0, 0
     for i in range(len(out)):
         sel = selection.indices[selection.offsets[i]:selection.offsets[i + 1]]
         if len(sel) == 0 or float(selection.log_gain[i]) != 0.0:
             thinned += len(sel) > 0
             continue
         c = part_copies(sel, part, size, cfg.complete, cfg.drop, eligible)
-        if cfg.complete_reach > 0 and len(c.whole):
-            reach = float(torch.quantile(content_distance(i, sel).double(), REACH_QUANTILE))
-            fits = within_reach(part[c.whole], content_distance(i, c.whole), reach, cfg.complete_reach)
-            mine = eligible.clone()
-            mine[part[c.whole]] = False
-            mine[fits] = True
-            held += len(torch.unique(part[c.whole])) - len(fits)
-            c = part_copies(sel, part, size, cfg.complete, cfg.drop, mine)
         new = torch.sort(torch.cat([c.whole, c.kept]))[0]
         if len(new):
             added += len(c.whole) - (len(sel) - len(c.kept) - len(c.cut))  # the whole parts' Gaussians not selected
             cut += len(c.cut)
             out[i] = new
     log.info("stylize: complete %.2f added %d Gaussians to part copies holding that share of their part, drop %.2f "
-             "left out %d of copies holding less%s%s", cfg.complete, added, cfg.drop, cut,
-             f"; complete_reach {cfg.complete_reach:.2f} left {held} part copies as selected (completed, they would "
-             "reach past the content)" if cfg.complete_reach > 0 else "",
+             "left out %d of copies holding less%s", cfg.complete, added, cfg.drop, cut,
              f"; {thinned} thinned clusters left as selected" if thinned else "")
     return out
 
@@ -783,20 +752,14 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     completing = (cfg.complete > 0 or cfg.drop > 0) and part is not None
     if (cfg.complete > 0 or cfg.drop > 0) and part is None:
         log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.complete, cfg.drop)
+    completed = [None] * K
+    if completing:
+        completed = completed_selection(selection, part, cfg, style.means.double() @ reg.style_up.double())
     tree = None
-    if cfg.trim > 0 or (completing and cfg.complete_reach > 0):
+    if cfg.trim > 0:
         from .geometry import kdtree
 
         tree, trimmed, total = kdtree(cm.numpy()), 0, 0
-
-    def content_distance(i: int, idx: torch.Tensor) -> torch.Tensor:
-        back = reg.inverse(style.means[idx].double(), torch.full((len(idx),), i, dtype=torch.long))
-        return torch.from_numpy(tree.query(back.numpy())[0])
-
-    completed = [None] * K
-    if completing:
-        completed = completed_selection(selection, part, cfg, style.means.double() @ reg.style_up.double(),
-                                        content_distance)
     todo, pairs = [], []
     for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
@@ -806,7 +769,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
             continue
         if completed[i] is not None:
             sel = completed[i]
-        if cfg.trim > 0:
+        if tree is not None:
             back = reg.inverse(style.means[sel].double(), torch.full((len(sel),), i, dtype=torch.long))
             nearest = labels.long()[torch.from_numpy(tree.query(back.numpy())[1])]
             keep = own_copies(nearest, i, None if part is None else part[sel], cfg.trim)
@@ -825,7 +788,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
                                  y_part=None if part is None else part[sel], y_reach=reach))
     if not pairs:
         raise ValueError("stylize: no non-empty cluster")
-    if cfg.trim > 0:
+    if tree is not None:
         log.info("stylize: trim %.2f dropped %d of %d selected Gaussians (%.1f %%): part copies mostly over the "
                  "neighbouring clusters' content", cfg.trim, trimmed, total, 100.0 * trimmed / max(total, 1))
     else:
