@@ -36,6 +36,11 @@ def test_names_and_config(tmp_path):
         two_scene_config(base, tmp_path, s)
     with pytest.raises(FileNotFoundError, match="nope.ply"):
         two_scene_config(base, tmp_path / "nope.ply", s)
+    views = tmp_path / "moss"  # posed images: pretrained as the pair's position says (eq. 1-2 for a style)
+    views.mkdir()
+    (views / "transforms_train.json").write_text("{}")
+    assert two_scene_config(base, c, views)["scenes"]["moss"] == {"source": "images", "kind": "style", "path": str(views)}
+    assert two_scene_config(base, views, s)["scenes"]["moss"]["kind"] == "content"
 
 
 def test_run_writes_the_config_and_starts_the_workflow(tmp_path):
