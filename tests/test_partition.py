@@ -888,7 +888,7 @@ def test_trim_keeps_the_part_copies_over_their_own_cluster():
 
 def test_complete_makes_each_part_copy_whole_or_drops_it():
     """stylize.complete: a part copy holding at least ``complete`` of its part becomes the whole part, one
-    holding less is dropped (whole_copies); in a collage of ant x pebbles every part a cluster keeps is
+    holding less than ``drop`` is dropped (part_copies); in a collage of ant x pebbles every part a cluster keeps is
     then whole, and the pebbles' element copies hold more of their pebble than the footprint's cut ones
     (uncapped: a thinned cluster holds a random subset and is left as selected)."""
     from wast3d.procedural import make_scene

@@ -262,9 +262,9 @@ class Trainer:
         with atomic_path(path) as tmp:
             torch.save(self.state_dict(), tmp)
 
-    def load(self, path: Path) -> bool:
-        """Resume from the checkpoint ``path``; False (nothing loaded) where it was made with another
-        configuration: the run starts over and overwrites it (the workflow re-runs a stage whose parameters
+    def load(self, path: Path) -> None:
+        """Resume from the checkpoint ``path``; where it was made with another configuration nothing is loaded
+        (logged): the run starts over and overwrites it (the workflow re-runs a stage whose parameters
         changed, and an old run's checkpoint must not stop it)."""
         d = torch.load(path, weights_only=False)
         if d["config"] != asdict(self.cfg):
@@ -272,7 +272,7 @@ class Trainer:
             diff = sorted(k for k in set(now) | set(d["config"]) if now.get(k) != d["config"].get(k))
             log.warning("%s: made with another configuration (%s differ); not resumed: training starts over",
                         path, ", ".join(diff))
-            return False
+            return
         for k, v in d["params"].items():
             self.params[k] = torch.nn.Parameter(v.clone())
         for k, o in self.optimizers.items():
@@ -287,7 +287,6 @@ class Trainer:
         self.log_rows = d["log"]
         self.elapsed = d["elapsed"]
         log.info("resumed from %s at step %d (%d Gaussians)", path, self.step, len(self.params["means"]))
-        return True
 
     # -- one step --
     def sh_degree_now(self) -> int:

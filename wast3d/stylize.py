@@ -749,8 +749,9 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smooth_with_parts false)")
         cfg = replace(cfg, smooth_passes=0)
     reach = smoothing_reach(style, reg.style_up.tolist(), cfg)
-    completing = (cfg.complete > 0 or cfg.drop > 0) and part is not None
-    if (cfg.complete > 0 or cfg.drop > 0) and part is None:
+    asked = cfg.complete > 0 or cfg.drop > 0
+    completing = asked and part is not None
+    if asked and part is None:
         log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.complete, cfg.drop)
     completed = [None] * K
     if completing:
