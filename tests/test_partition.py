@@ -42,7 +42,7 @@ def test_registration_recovers_known_transform():
     # the density rule puts s0 at the true scale's neighbourhood (element_scale would set it from the
     # content's size, which four scattered copies do not have); copies of an open sheet have no outside,
     # so both normal signs are started (orient=False)
-    reg = register(P, L, style, RegistrationConfig(landings=1, element_scale=0, orient=False))
+    reg = register(P, L, style, RegistrationConfig(landings=1, landing="centre", element_scale=0, orient=False))
     for i, (R, s, t) in enumerate(truth):
         m = L == i
         err = (reg.apply(P[m], L[m]) - s * ((P[m] - t) @ R.T)).norm(dim=1).mean() / reg.style_spacing
@@ -739,7 +739,7 @@ def test_registration_uses_the_given_outward_normals():
     c = torch.rand(400, 3, generator=g, dtype=D64) * torch.tensor([1.0, 1.0, 0.01], dtype=D64)
     labels = torch.zeros(400, dtype=torch.long)
     up = torch.tensor([0.0, 0.0, 1.0], dtype=D64).expand(400, 3)
-    cfg = RegistrationConfig(landings=1, yaws=2, element_scale=0)
+    cfg = RegistrationConfig(landings=1, landing="centre", yaws=2, element_scale=0)  # the bumps' flanks tilt
     ups = []
     for sign in (1.0, -1.0):
         reg = register(c, labels, style, cfg, normals=sign * up)
@@ -1045,3 +1045,31 @@ def test_style_cleaning_dilates_when_asked(tmp_path):
     c = json.loads((tmp_path / "d.json").read_text())["dilated_by"]
     assert c > 0 and "dilated_by" not in json.loads((tmp_path / "k.json").read_text())
     assert torch.equal(d.means, k.means) and (d.log_scales > k.log_scales).all()
+
+
+def test_landings_cover_the_style_by_area_not_by_density():
+    """``landing: area`` deals the starts over the style's footprint evenly by area, each on the top
+    surface: on a patch whose left half holds 9x the right's Gaussians (a trained style's dense gravel
+    beside its sparse boulders), the landings split about evenly where drawing Gaussians would put 90 %
+    on the left; no cell is used twice while another is unused; each landing is the highest inner
+    Gaussian of its cell. ``centre`` keeps the old rule: every cluster's first landing at the median."""
+    from wast3d.registration import landing_points
+
+    g = torch.Generator().manual_seed(0)
+    dense = torch.rand(9000, 2, generator=g, dtype=D64) * torch.tensor([1.0, 2.0], dtype=D64) - torch.tensor([1.0, 1.0], dtype=D64)
+    sparse = torch.rand(1000, 2, generator=g, dtype=D64) * torch.tensor([1.0, 2.0], dtype=D64) - torch.tensor([0.0, 1.0], dtype=D64)
+    xy = torch.cat([dense, sparse])
+    style = torch.cat([xy, 0.05 * torch.rand(len(xy), 1, generator=g, dtype=D64)], 1)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=D64)
+    lp = landing_points(style, up, 60, 2, torch.Generator().manual_seed(1), "area", cells=16)
+    assert lp.shape == (60, 2, 3)
+    left = float((lp[..., 0] < 0).double().mean())
+    assert 0.35 < left < 0.65, left  # 120 of about 170 cells; drawing Gaussians: 0.9
+    assert len(torch.unique(lp.reshape(-1, 3), dim=0)) == 120  # fewer landings than the central 13 x 13 cells
+    # each is the top of its cell's column (heights uniform in [0, 0.05]; 3-40 Gaussians a cell)
+    assert float(lp[..., 2].mean()) > float(style[:, 2].quantile(0.8))
+    lc = landing_points(style, up, 100, 2, torch.Generator().manual_seed(1), "centre")
+    assert torch.equal(lc[:, 0], style.median(0).values.expand(100, 3))
+    assert float((lc[:, 1, 0] < 0).double().mean()) > 0.8  # random Gaussians: by density
+    with pytest.raises(ValueError, match="landing must be one of"):
+        landing_points(style, up, 2, 1, g, "middle")

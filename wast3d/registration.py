@@ -22,8 +22,8 @@ Method: multi-start anisotropic ICP, batched over all clusters x starts at once.
   copy (9k) 1.7x larger. ``scale`` sets s0 explicitly.
 - ICP converges slowly and then snaps: from 29 degrees off, 30 rounds left 1.7 spacings of residual
   and 100 rounds reached 1e-11 on a test patch, hence the round counts.
-- Starts, ``landings x yaws`` per cluster: landing points (the style's centre, then points drawn
-  from the inner 80 % of the style scene); at each, the cluster's PCA normal (least-variance axis) is
+- Starts, ``landings x yaws`` per cluster: landing points (:func:`landing_points`: by default drawn
+  evenly by area over the central 80 % of the style's footprint, on its top surface); at each, the cluster's PCA normal (least-variance axis) is
   aligned with the style's local normal (PCA of 32 style neighbours), at ``yaws`` evenly spaced
   rotations about the normal (random offset per cluster). With ``orient`` (default) the content
   normal is turned *outward* (:func:`outward_normals`) and the style's *up* (the side its elements
@@ -57,6 +57,7 @@ from .options import checked, option
 log = logging.getLogger(__name__)
 
 
+LANDINGS = ("area", "centre")
 UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
             "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
 
@@ -64,7 +65,11 @@ UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "
 @dataclass
 @checked("register")
 class RegistrationConfig:
-    landings: int = option(2, "random start points in the style besides its centre", minimum=1)
+    landings: int = option(2, "start points per cluster in the style (see landing)", minimum=1)
+    landing: str = option("area", "where the starts land: area (drawn evenly by area over the central 80 % of "
+                                  "the style's footprint, each on its top surface, spread over the clusters) or centre "
+                                  "(the style's centre, then random style Gaussians: half the ant's clusters "
+                                  "copied the trained stones' middle)", enum=LANDINGS)
     yaws: int = option(6, "rotations about the normal tried per start", minimum=1)
     orient: bool = option(True, "each cluster's outward normal onto the style's up (the elements' tops outside); false:"
                                 " both signs started, the residual picks")
@@ -397,6 +402,54 @@ def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConf
                        **({"note": why} if why else {})}
 
 
+def landing_points(style: torch.Tensor, up: torch.Tensor, K: int, L: int, g: torch.Generator,
+                   how: str = "area", cells: int = 32, inner: float = 0.8) -> torch.Tensor:
+    """style [M, 3], up [3] -> [K, L, 3] the multi-start phase's landing points, L per cluster, kept
+    off the style's border, where a cluster's footprint would have no style around it.
+
+    - ``area``: the style's footprint on the plane normal to ``up`` (its box between the 0.5 % and
+      99.5 % quantiles per axis) is cut into ``cells x cells`` cells, and the cells of its central
+      ``inner`` per axis that hold Gaussians are dealt out as concatenated random permutations (every
+      cell once before any twice); a landing is its cell's top Gaussian (highest along ``up``). So the
+      K L landings cover the footprint evenly by area, on its top surface, whatever the style's
+      density: a trained style's gravel holds many small Gaussians, its boulders few large ones, and
+      drawing Gaussians (or measuring "inner" from their median) draws the gravel.
+    - ``centre``: the rule before: the style's median for every cluster's first landing, Gaussians
+      drawn at random within the inner 80 % (by distance from the median) for the others; on the ant x
+      trained stones half the clusters kept the first, all copying the same middle of the style."""
+    sc = style.median(0).values
+    if how == "centre":
+        rad = (style - sc).norm(dim=1)
+        pool = (rad <= torch.quantile(rad, 0.8)).nonzero().squeeze(1)
+        lp = style[pool[torch.randint(len(pool), (K, L), generator=g)]]
+        lp[:, 0] = sc
+        return lp
+    if how != "area":
+        raise ValueError(f"registration: landing must be one of {', '.join(LANDINGS)}, got '{how}'")
+    uvh = style @ frame_from_normal(up.to(style)[None])[0]  # columns: tangent, tangent, up
+    uv = uvh[:, :2]
+    q = torch.tensor([0.005, 0.995], dtype=uv.dtype)
+    lo, hi = torch.quantile(uv, q[0], dim=0), torch.quantile(uv, q[1], dim=0)
+    mid, half = (lo + hi) / 2, (hi - lo).clamp_min(1e-12) / 2
+    pool = ((uv - mid).abs() <= inner * half).all(1).nonzero().squeeze(1)
+    if len(pool) == 0:  # a degenerate footprint (a line, a point): any Gaussian
+        pool = torch.arange(len(style))
+    ij = ((uv[pool] - lo) / (2 * half) * cells).long().clamp(0, cells - 1)
+    cell = ij[:, 0] * cells + ij[:, 1]
+    # the top Gaussian of each occupied cell: sort by height, then stably by cell, take each cell's last
+    by_height = pool[torch.argsort(uvh[pool, 2])]
+    cell_of = torch.empty(len(style), dtype=torch.long)
+    cell_of[pool] = cell
+    order = by_height[torch.argsort(cell_of[by_height], stable=True)]
+    c_sorted = cell_of[order]
+    last = torch.ones_like(c_sorted, dtype=torch.bool)
+    last[:-1] = c_sorted[1:] != c_sorted[:-1]
+    tops = order[last]
+    n = K * L
+    deal = torch.cat([torch.randperm(len(tops), generator=g) for _ in range(-(-n // len(tops)))])[:n]
+    return style[tops[deal]].reshape(K, L, 3)
+
+
 def _segment_mean(v: torch.Tensor, seg: torch.Tensor, n: int) -> torch.Tensor:
     s = v.new_zeros(n, *v.shape[1:]).index_add_(0, seg, v)
     c = v.new_zeros(n).index_add_(0, seg, torch.ones_like(seg, dtype=v.dtype)).clamp_min(1)
@@ -480,18 +533,13 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     # start j of a cluster: landing j // (signs yaws), normal sign j % signs, yaw (j // signs) % yaws
     j = torch.arange(M)
     land, sign, yaw_i = j // (signs * cfg.yaws), j % signs, (j // signs) % cfg.yaws
-    sc = style.median(0).values
-    rad = (style - sc).norm(dim=1)
-    inner = (rad <= torch.quantile(rad, 0.8)).nonzero().squeeze(1)
-    lp = style[inner[torch.randint(len(inner), (K, cfg.landings), generator=g)]]
-    lp[:, 0] = sc
-    p0 = lp[:, land].reshape(B, 3)
+    up = style_up(style, cfg.style_up)
+    p0 = landing_points(style, up, K, cfg.landings, g, cfg.landing)[:, land].reshape(B, 3)
     n_style = local_normals(style, p0, 32)
     # cluster normals (least-variance axis of each cluster)
     cov = content.new_zeros(K, 3, 3).index_add_(0, labels, cent[:, :, None] * cent[:, None, :])
     _, vecs = torch.linalg.eigh(cov + 1e-12 * torch.eye(3, dtype=cov.dtype))
     n_content = vecs[:, :, 0]
-    up = style_up(style, cfg.style_up)
     ok = torch.zeros(K, dtype=torch.bool)
     if normals is not None:
         if normals.shape != content.shape:
