@@ -23,8 +23,9 @@ Method: multi-start anisotropic ICP, batched over all clusters x starts at once.
 - ICP converges slowly and then snaps: from 29 degrees off, 30 rounds left 1.7 spacings of residual
   and 100 rounds reached 1e-11 on a test patch, hence the round counts.
 - Starts, ``landings x yaws`` per cluster: landing points (:func:`landing_points`: by default drawn
-  evenly by area over the central 80 % of the style's footprint, on its top surface); at each, the cluster's PCA normal (least-variance axis) is
-  aligned with the style's local normal (PCA of 32 style neighbours), at ``yaws`` evenly spaced
+  evenly by area over the central 80 % of the style's footprint, on its top surface); at each, the
+  cluster's PCA normal (least-variance axis) is aligned with the style's local normal (PCA of 32
+  style neighbours), at ``yaws`` evenly spaced
   rotations about the normal (random offset per cluster). With ``orient`` (default) the content
   normal is turned *outward* (:func:`outward_normals`) and the style's *up* (the side its elements
   stand on: :func:`style_up`), so that every cluster shows the elements' tops; without it both signs
@@ -417,8 +418,8 @@ def landing_points(style: torch.Tensor, up: torch.Tensor, K: int, L: int, g: tor
     - ``centre``: the rule before: the style's median for every cluster's first landing, Gaussians
       drawn at random within the inner 80 % (by distance from the median) for the others; on the ant x
       trained stones half the clusters kept the first, all copying the same middle of the style."""
-    sc = style.median(0).values
     if how == "centre":
+        sc = style.median(0).values
         rad = (style - sc).norm(dim=1)
         pool = (rad <= torch.quantile(rad, 0.8)).nonzero().squeeze(1)
         lp = style[pool[torch.randint(len(pool), (K, L), generator=g)]]
