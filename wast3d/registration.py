@@ -438,14 +438,11 @@ def landing_points(style: torch.Tensor, up: torch.Tensor, K: int, L: int, g: tor
     ij = ((uv[pool] - lo) / (2 * half) * cells).long().clamp(0, cells - 1)
     cell = ij[:, 0] * cells + ij[:, 1]
     # the top Gaussian of each occupied cell: sort by height, then stably by cell, take each cell's last
-    by_height = pool[torch.argsort(uvh[pool, 2])]
-    cell_of = torch.empty(len(style), dtype=torch.long)
-    cell_of[pool] = cell
-    order = by_height[torch.argsort(cell_of[by_height], stable=True)]
-    c_sorted = cell_of[order]
-    last = torch.ones_like(c_sorted, dtype=torch.bool)
-    last[:-1] = c_sorted[1:] != c_sorted[:-1]
-    tops = order[last]
+    order = torch.argsort(uvh[pool, 2])
+    order = order[torch.argsort(cell[order], stable=True)]
+    last = torch.ones(len(order), dtype=torch.bool)
+    last[:-1] = cell[order[1:]] != cell[order[:-1]]
+    tops = pool[order[last]]
     n = K * L
     deal = torch.cat([torch.randperm(len(tops), generator=g) for _ in range(-(-n // len(tops)))])[:n]
     return style[tops[deal]].reshape(K, L, 3)
