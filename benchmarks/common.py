@@ -144,7 +144,8 @@ class PairRunner:
 
         t = time.perf_counter()
         sel = select_with(SelectConfig(k=k, mode=mode, radius=radius), self.mapped, self.labels,
-                          self.style.means.double(), self.reg.style_spacing)
+                          self.style.means.double(), self.reg.style_spacing,
+                          self.reg.apply_covariances(self.content.covariances.double(), self.labels))
         res = stylize(self.content, self.labels, self.style, self.reg, sel, stylize_cfg, progress=False)
         final, _ = readjust_scales(res.scene, res.before_means, res.labels, 8, bound)
         return final, time.perf_counter() - t, res.curves

@@ -8,7 +8,7 @@ import torch
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
 from wast3d.geometry import _flushing_denormals, frame_from_normal, kdtree, knn
-from wast3d.registration import RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
+from wast3d.registration import Registration, RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
 from wast3d.selection import SelectConfig, select, select_footprint, select_with, thin
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
 
@@ -279,6 +279,48 @@ def test_footprint_selection_keeps_whole_elements_where_knn_takes_a_slab():
     k0 = idx3[off3[0]:off3[1]]
     assert float(style[k0][is_dome[k0], 2].max()) < 0.2 < float(style[d0][is_dome[d0], 2].max())
 
+
+
+def test_footprint_extent_claims_a_trained_gaussians_area():
+    """A trained content stands for a flat area with one large Gaussian: nine mapped points 0.4 apart with
+    discs of sigma 0.1 in the plane (face-on) claim their 2-sigma discs with ``extent`` 2, inside the
+    cluster's convex hull only; the spacing rule alone (clipped at 4 style spacings) claims 0.12. The same
+    Gaussians turned edge-on to the plane claim no more than the spacing rule: the extent is measured in
+    the cluster's plane."""
+    ax = torch.arange(-1, 1 + 1e-9, 0.02, dtype=D64)
+    gx, gy = torch.meshgrid(ax, ax, indexing="ij")
+    style = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros(gx.numel(), dtype=D64)], 1)
+    g = torch.tensor([-0.4, 0.0, 0.4], dtype=D64)
+    xy = torch.stack(torch.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2) + 0.005
+    mapped = torch.cat([xy, torch.zeros(9, 1, dtype=D64)], 1)
+    labels = torch.zeros(9, dtype=torch.long)
+    face = torch.diag(torch.tensor([0.1**2, 0.1**2, 1e-6], dtype=D64)).expand(9, 3, 3)
+    edge = torch.diag(torch.tensor([0.1**2, 1e-6, 0.1**2], dtype=D64)).expand(9, 3, 3)
+    sel = {}
+    for name, cov, ext in (("spacing", face, 0.0), ("face", face, 2.0), ("edge", edge, 2.0)):
+        _, idx = select_footprint(mapped, labels, style, 1.5, 0.02, covariances=cov, extent=ext)
+        sel[name] = (idx, torch.cdist(style[idx, :2], xy).min(1).values)
+    assert float(sel["spacing"][1].max()) <= 1.5 * 4 * 0.02 + 1e-9
+    idx, d = sel["face"]
+    assert 0.19 < float(d.max()) <= 0.2 + 1e-9 and len(idx) > 1.5 * len(sel["spacing"][0])
+    past = style[idx[d > 0.12 + 1e-9], :2]  # what the extent added: inside the hull
+    assert len(past) > 0 and float((past - 0.005).abs().max()) <= 0.4 + 1e-9
+    assert float(sel["edge"][1].max()) < 0.13 and len(sel["edge"][0]) < 1.5 * len(sel["spacing"][0])
+
+def test_registration_maps_covariances_as_it_maps_points():
+    """``apply_covariances`` is the covariance of the mapped samples of a Gaussian (``apply``: S R (x - t))."""
+    g = torch.Generator().manual_seed(0)
+    R = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=D64))[0]
+    R = R * torch.linalg.det(R)
+    reg = Registration(R=R[None], s=torch.tensor([[1.5, 0.7, 2.0]], dtype=D64), t=torch.randn(1, 3, generator=g, dtype=D64),
+                       p=torch.zeros(1, 3, dtype=D64), mu=torch.zeros(1, 3, dtype=D64), residual_init=torch.zeros(1, dtype=D64),
+                       residual=torch.zeros(1, dtype=D64), s0=1.0, style_spacing=0.01, style_up=torch.tensor([0.0, 0, 1]))
+    L = torch.randn(3, 3, generator=g, dtype=D64)
+    cov = L @ L.T
+    x = torch.randn(200_000, 3, generator=g, dtype=D64) @ L.T + 0.3
+    y = reg.apply(x, torch.zeros(len(x), dtype=torch.long))
+    want = reg.apply_covariances(cov[None], torch.zeros(1, dtype=torch.long))[0]
+    assert torch.allclose(torch.cov(y.T), want, rtol=0.02, atol=0.02 * float(want.abs().max()))
 
 def test_kdtree_builds_on_tied_coordinates_under_flush_to_zero():
     """The CLI and this suite flush denormals; scipy's balanced KD-tree build then crashed the process on

@@ -164,7 +164,7 @@ def run_select(*, content: Path, clusters: Path, style: Path, registration: Path
     labels = _labels(clusters, len(content))
     reg = load_registration(registration)
     sel = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
-                      reg.style_spacing)
+                      reg.style_spacing, reg.apply_covariances(content.covariances.double(), labels))
     sizes = sel.sizes.numpy()
     if (sizes == 0).any():
         log.warning("select: %d clusters got no style Gaussians (they are skipped by stylize)", int((sizes == 0).sum()))
@@ -178,7 +178,7 @@ def run_select(*, content: Path, clusters: Path, style: Path, registration: Path
                  cfg.max_per_point)
     save_npz(out_npz, offsets=sel.offsets.numpy(), indices=sel.indices.numpy(), sizes=sizes, k=k,
              log_gain=sel.log_gain.numpy())
-    write_json(Path(out_npz).with_suffix(".json"), {"k": k, "mode": cfg.mode, "radius": cfg.radius,
+    write_json(Path(out_npz).with_suffix(".json"), {"k": k, "mode": cfg.mode, "radius": cfg.radius, "extent": cfg.extent,
                                                     "max_per_point": cfg.max_per_point, "clusters_thinned": thinned,
                                                     "clusters": len(sizes), "selected_total": int(sizes.sum()),
                                                     "size_min": int(sizes.min()), "size_median": float(np.median(sizes)),

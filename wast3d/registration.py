@@ -113,6 +113,11 @@ class Registration:
         R, s, t = self.R[labels], self.s[labels], self.t[labels]
         return s * torch.einsum("nij,nj->ni", R, points - t)
 
+    def apply_covariances(self, cov: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """The same map on covariances [N,3,3]: A cov A^T with A = S R."""
+        A = self.s[labels].to(cov)[:, :, None] * self.R[labels].to(cov)
+        return A @ cov @ A.transpose(-1, -2)
+
     def inverse(self, points: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         """Style-scene points back to the content frame: R^T S^{-1} y + t."""
         R, s, t = self.R[labels], self.s[labels], self.t[labels]
