@@ -280,7 +280,6 @@ def test_footprint_selection_keeps_whole_elements_where_knn_takes_a_slab():
     assert float(style[k0][is_dome[k0], 2].max()) < 0.2 < float(style[d0][is_dome[d0], 2].max())
 
 
-
 def test_footprint_extent_claims_a_trained_gaussians_area():
     """A trained content stands for a flat area with one large Gaussian: nine mapped points 0.4 apart with
     discs of sigma 0.1 in the plane (face-on) claim their 2-sigma discs with ``extent`` 2, inside the
@@ -307,6 +306,7 @@ def test_footprint_extent_claims_a_trained_gaussians_area():
     assert len(past) > 0 and float((past - 0.005).abs().max()) <= 0.4 + 1e-9
     assert float(sel["edge"][1].max()) < 0.13 and len(sel["edge"][0]) < 1.5 * len(sel["spacing"][0])
 
+
 def test_registration_maps_covariances_as_it_maps_points():
     """``apply_covariances`` is the covariance of the mapped samples of a Gaussian (``apply``: S R (x - t))."""
     g = torch.Generator().manual_seed(0)
@@ -321,6 +321,7 @@ def test_registration_maps_covariances_as_it_maps_points():
     y = reg.apply(x, torch.zeros(len(x), dtype=torch.long))
     want = reg.apply_covariances(cov[None], torch.zeros(1, dtype=torch.long))[0]
     assert torch.allclose(torch.cov(y.T), want, rtol=0.02, atol=0.02 * float(want.abs().max()))
+
 
 def test_kdtree_builds_on_tied_coordinates_under_flush_to_zero():
     """The CLI and this suite flush denormals; scipy's balanced KD-tree build then crashed the process on

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .geometry import kdtree, knn
+from .geometry import frame_from_normal, kdtree, knn
 from .options import checked, option
 
 
@@ -143,9 +143,11 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
         if len(y) > 1:
             rho = np.clip(kdtree(flat_y).query(flat_y, k=2)[0][:, 1], spacing, MAX_FOOTPRINT * spacing)
         rho = radius * rho
-        ext = rho
+        ext, big = rho, np.zeros(len(y), dtype=bool)
         if covariances is not None and extent > 0 and len(y) > 2:
-            ext = np.maximum(rho, extent * _plane_sigma(covariances[lab == i].double().numpy(), n))
+            E = frame_from_normal(torch.from_numpy(n[None])).numpy()[0][:, :2].T  # [2, 3] the plane's axes
+            ext = np.maximum(rho, extent * _plane_sigma(covariances[lab == i].double().numpy(), E))
+            big = ext > rho
         cand = np.asarray(tree3.query_ball_point(c, np.sqrt(2) * r + float(ext.max())), dtype=np.int64)
         if len(cand) == 0:
             continue
@@ -156,9 +158,10 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
         # the style Gaussians in each mapped point's own footprint (one query, a radius per point)
         tree2 = kdtree(flat_s)
         inside = np.fromiter((j for h in tree2.query_ball_point(flat_y, rho) for j in h), dtype=np.int64)
-        if ext is not rho:
-            claimed = np.unique(np.fromiter((j for h in tree2.query_ball_point(flat_y, ext) for j in h), dtype=np.int64))
-            inside = np.concatenate([inside, claimed[_in_hull(flat_y, flat_s[claimed])]])
+        if big.any():  # the discs past the spacing rule's, clipped to the hull
+            hits = tree2.query_ball_point(flat_y[big], ext[big])
+            claimed = np.unique(np.fromiter((j for h in hits for j in h), dtype=np.int64))
+            inside = np.concatenate([inside, claimed[_in_hull(flat_y @ E.T, flat_s[claimed] @ E.T)]])
         keep = np.sort(cand[np.unique(inside)])
         clusters.append(np.full(len(keep), i, dtype=np.int64))
         chosen.append(keep)
@@ -167,27 +170,23 @@ def select_footprint(mapped: torch.Tensor, labels: torch.Tensor, style: torch.Te
     return _csr(cl, ix, K)
 
 
-def _plane_sigma(cov: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """In-plane standard deviation of Gaussians ``cov`` [N,3,3] in the plane normal to ``n`` [3]: the
+def _plane_sigma(cov: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """In-plane standard deviation of Gaussians ``cov`` [N,3,3] in the plane of the axes ``E`` [2, 3]: the
     geometric mean of the two axes of the projected covariance, ``det(E cov E^T)^(1/4)`` -> [N]."""
-    from .geometry import frame_from_normal
-
-    E = frame_from_normal(torch.from_numpy(n[None])).numpy()[0][:, :2].T  # [2, 3] in-plane axes
     c2 = np.einsum("ij,njk,lk->nil", E, cov, E)
     return np.clip(np.linalg.det(c2), 0.0, None) ** 0.25
 
 
-def _in_hull(flat_y: np.ndarray, flat_s: np.ndarray) -> np.ndarray:
-    """[S] bool: which of the points ``flat_s`` [S, 3] lie inside the 2D convex hull of ``flat_y`` [N, 3]
-    (both in one plane through the origin); none where the hull is degenerate (points on a line)."""
+def _in_hull(hull: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """[S] bool: which of ``points`` [S, 2] lie inside the convex hull of ``hull`` [N, 2]; none where the
+    hull is degenerate (points on a line)."""
     from scipy.spatial import Delaunay, QhullError
 
-    axes = np.linalg.svd(flat_y - flat_y.mean(0), full_matrices=False)[2][:2]
     try:
-        tri = Delaunay(flat_y @ axes.T)
+        tri = Delaunay(hull)
     except QhullError:
-        return np.zeros(len(flat_s), dtype=bool)
-    return tri.find_simplex(flat_s @ axes.T) >= 0
+        return np.zeros(len(points), dtype=bool)
+    return tri.find_simplex(points) >= 0
 
 
 @torch.no_grad()
