@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
+from wast3d.clustering import ClusterConfig, cluster_diameters, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
 from wast3d.geometry import _flushing_denormals, frame_from_normal, kdtree, knn
 from wast3d.registration import Registration, RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
@@ -118,6 +118,27 @@ def test_kmeans_deterministic_and_sizes():
     assert not np.array_equal(l1, l3)
     assert n_clusters_for(1_000_000, ClusterConfig()) == 400 and n_clusters_for(5, ClusterConfig()) == 1
     assert n_clusters_for(1000, ClusterConfig(n_clusters=7)) == 7
+
+
+def test_kmeans_span_sizes_clusters_by_width_not_by_count():
+    # the same square sampled sparsely and 4x as densely: 800-point clusters are half as wide on the
+    # dense one; with span, both come out about span x the diameter wide
+    g = torch.Generator().manual_seed(0)
+    widths, spans = [], []
+    for n in (5000, 20000):
+        uv = torch.rand(n, 2, generator=g)
+        pts = torch.cat([uv, torch.zeros(n, 1)], 1)
+        x = pts.double().numpy()
+        by_count = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0))[0]
+        labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0, span=0.2))
+        widths.append(np.median(cluster_diameters(by_count, x)))
+        spans.append(np.median(cluster_diameters(labels, x)) / (2 ** 0.5))  # the square's diameter: its diagonal
+        assert info["span"]["clusters"] == labels.max() + 1 and info["span"]["clusters_by_count"] == round(n / 800)
+    assert widths[1] < 0.6 * widths[0]
+    assert spans == pytest.approx([0.2, 0.2], rel=0.15)  # one correction of the count: within 15 %
+    # a cluster's diameter: twice the 90th percentile of its points' distances to its centroid
+    ring = np.stack([np.cos(np.linspace(0, 2 * np.pi, 100, endpoint=False)), np.sin(np.linspace(0, 2 * np.pi, 100, endpoint=False)), np.zeros(100)], 1)
+    assert cluster_diameters(np.zeros(100, np.int64), ring) == pytest.approx([2.0])
 
 
 def test_kmeans_merges_small_clusters():

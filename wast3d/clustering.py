@@ -3,8 +3,11 @@
 Features: ``[xyz / radius, colour_weight * rgb]`` (positions divided by the scene radius so that the
 colour weight means the same at every scene scale). Number of clusters: ``n_clusters`` when given
 (paper: 400), else ``round(points / target_cluster_size)`` clamped to [1, max_clusters]: a small scene
-gets few clusters of a useful size instead of 400 tiny ones. scikit-learn's ``KMeans`` (deterministic
-by seed) up to ``minibatch_above`` x clusters feature rows, ``MiniBatchKMeans`` beyond.
+gets few clusters of a useful size instead of 400 tiny ones. ``span`` > 0 corrects that count once, by
+``(d / (span D))^2`` with d the median diameter of the clusters it gave and D the content's diameter, so
+that clusters are about as wide in the content's units (and so in the style's element lengths, which
+registration maps onto a fixed share of D) whatever the capture's density. scikit-learn's ``KMeans``
+(deterministic by seed) up to ``minibatch_above`` x clusters feature rows, ``MiniBatchKMeans`` beyond.
 **Wrapped clusters split** (``flatness`` > 0, needs each point's outward normal,
 :func:`wast3d.surface.outward_normals`): on positions alone 15 of the ant's 25 clusters wrap all the way
 around a leg or a body segment (their mean unit normal under 0.1 long) and 31 % of its points face
@@ -45,6 +48,11 @@ class ClusterConfig:
                                "interleaves them on a textured capture, and a split by noisy normals into halves that"
                                " interleave: the guitar's points had 57 % of their 8 nearest in their own cluster, "
                                "the ant's 87 %); 0: off", minimum=0)
+    span: float = option(0.0, "clusters about this wide, as a fraction of the content's diameter (robust_bounds, "
+                              "as register.element_scale's): the count from target_cluster_size is corrected once "
+                              "by the square of the median k-means cluster's diameter over this, before the splits "
+                              "(a count of points spans 1.3 element lengths on the guitar's dense capture, 2.1 on "
+                              "the ant); 0: the count alone", minimum=0)
     min_split: int = option(100, "a split never makes a cluster smaller than this many points", minimum=1)
     min_size: int = option(4, "smaller clusters are merged into their nearest neighbour", minimum=1)
     seed: int = option(0, "k-means seed")
@@ -71,13 +79,26 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
     radius = max(float(np.quantile(np.linalg.norm(x - centre, axis=1), 0.99)), 1e-12)
     feats = np.concatenate([(x - centre) / radius, cfg.colour_weight * rgb.detach().double().cpu().numpy()], 1)
     k = n_clusters_for(n, cfg)
-    if n * k > cfg.minibatch_above:
-        km = MiniBatchKMeans(k, random_state=cfg.seed, batch_size=4096, n_init=3)
-        algo = "MiniBatchKMeans"
-    else:
-        km = KMeans(k, random_state=cfg.seed, n_init=1)
-        algo = "KMeans"
-    labels = km.fit_predict(feats)
+
+    def fit(k: int) -> tuple[np.ndarray, str]:
+        if n * k > cfg.minibatch_above:
+            return MiniBatchKMeans(k, random_state=cfg.seed, batch_size=4096, n_init=3).fit_predict(feats), "MiniBatchKMeans"
+        return KMeans(k, random_state=cfg.seed, n_init=1).fit_predict(feats), "KMeans"
+
+    labels, algo = fit(k)
+    span = None
+    if cfg.span > 0 and not cfg.n_clusters:
+        from .geometry import robust_bounds
+
+        D = 2 * robust_bounds(means)[1]
+        got = float(np.median(cluster_diameters(labels, x))) / D
+        k1 = int(max(1, min(cfg.max_clusters, n, round(k * (got / cfg.span) ** 2))))
+        span = {"clusters_by_count": k, "diameter_by_count": got, "clusters": k1}
+        log.info("k-means: %d clusters by count are a median %.3g of the content's diameter wide; span %.3g asks %d",
+                 k, span["diameter_by_count"], cfg.span, k1)
+        if k1 != k:
+            k = k1
+            labels, algo = fit(k)
     labels, merged = _merge_small(labels, feats, cfg.min_size)
     split = 0
     if cfg.flatness > 0:
@@ -91,12 +112,25 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
     cent = np.stack([x[labels == i].mean(0) for i in range(K)])
     sizes = np.bincount(labels, minlength=K)
     info = {"algorithm": algo, "requested_clusters": k, "clusters": int(K), "merged_small_clusters": merged,
-            "split_wrapped_clusters": split, "coherence_relabelled": changed,
+            "split_wrapped_clusters": split, "coherence_relabelled": changed, "span": span,
             "size_min": int(sizes.min()), "size_median": float(np.median(sizes)), "size_max": int(sizes.max()),
             "points": n}
     log.info("k-means (%s): %d clusters of %d..%d points (median %.0f)", algo, K, sizes.min(), sizes.max(),
              np.median(sizes))
     return labels.astype(np.int64), cent, info
+
+
+def cluster_diameters(labels: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """[K] each cluster's diameter: twice the 90th percentile of its points' [N, 3] distances to its
+    centroid (a stray point does not set it)."""
+    K = labels.max() + 1
+    cent = np.zeros((K, 3))
+    np.add.at(cent, labels, points)
+    cent /= np.maximum(np.bincount(labels, minlength=K), 1)[:, None]
+    d = np.linalg.norm(points - cent[labels], axis=1)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(K + 1))
+    return np.array([2 * np.quantile(d[order[a:b]], 0.9) if b > a else 0.0 for a, b in zip(bounds[:-1], bounds[1:])])
 
 
 COHERENCE_K = 16  # neighbours of the majority vote (clustering.contiguous)
