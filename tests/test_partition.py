@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from wast3d.clustering import ClusterConfig, cluster_diameters, kmeans, n_clusters_for
+from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
-from wast3d.geometry import _flushing_denormals, frame_from_normal, kdtree, knn
+from wast3d.geometry import _flushing_denormals, frame_from_normal, group_diameters, kdtree, knn
 from wast3d.registration import Registration, RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
 from wast3d.selection import SelectConfig, select, select_footprint, select_with, thin
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
@@ -131,14 +131,14 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
         x = pts.double().numpy()
         by_count = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0))[0]
         labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0, span=0.2))
-        widths.append(np.median(cluster_diameters(by_count, x)))
-        spans.append(np.median(cluster_diameters(labels, x)) / (2 ** 0.5))  # the square's diameter: its diagonal
+        widths.append(np.median(group_diameters(by_count, x)))
+        spans.append(np.median(group_diameters(labels, x)) / (2 ** 0.5))  # the square's diameter: its diagonal
         assert info["span"]["clusters"] == labels.max() + 1 and info["span"]["clusters_by_count"] == round(n / 800)
     assert widths[1] < 0.6 * widths[0]
     assert spans == pytest.approx([0.2, 0.2], rel=0.15)  # one correction of the count: within 15 %
     # a cluster's diameter: twice the 90th percentile of its points' distances to its centroid
     ring = np.stack([np.cos(np.linspace(0, 2 * np.pi, 100, endpoint=False)), np.sin(np.linspace(0, 2 * np.pi, 100, endpoint=False)), np.zeros(100)], 1)
-    assert cluster_diameters(np.zeros(100, np.int64), ring) == pytest.approx([2.0])
+    assert group_diameters(np.zeros(100, np.int64), ring) == pytest.approx([2.0])
 
 
 def test_kmeans_merges_small_clusters():

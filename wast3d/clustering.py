@@ -88,10 +88,10 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
     labels, algo = fit(k)
     span = None
     if cfg.span > 0 and not cfg.n_clusters:
-        from .geometry import robust_bounds
+        from .geometry import group_diameters, robust_bounds
 
         D = 2 * robust_bounds(means)[1]
-        got = float(np.median(cluster_diameters(labels, x))) / D
+        got = float(np.median(group_diameters(labels, x))) / D
         k1 = int(max(1, min(cfg.max_clusters, n, round(k * (got / cfg.span) ** 2))))
         span = {"clusters_by_count": k, "diameter_by_count": got, "clusters": k1}
         log.info("k-means: %d clusters by count are a median %.3g of the content's diameter wide; span %.3g asks %d",
@@ -118,19 +118,6 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
     log.info("k-means (%s): %d clusters of %d..%d points (median %.0f)", algo, K, sizes.min(), sizes.max(),
              np.median(sizes))
     return labels.astype(np.int64), cent, info
-
-
-def cluster_diameters(labels: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """[K] each cluster's diameter: twice the 90th percentile of its points' [N, 3] distances to its
-    centroid (a stray point does not set it)."""
-    K = labels.max() + 1
-    cent = np.zeros((K, 3))
-    np.add.at(cent, labels, points)
-    cent /= np.maximum(np.bincount(labels, minlength=K), 1)[:, None]
-    d = np.linalg.norm(points - cent[labels], axis=1)
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], np.arange(K + 1))
-    return np.array([2 * np.quantile(d[order[a:b]], 0.9) if b > a else 0.0 for a, b in zip(bounds[:-1], bounds[1:])])
 
 
 COHERENCE_K = 16  # neighbours of the majority vote (clustering.contiguous)

@@ -199,15 +199,13 @@ def copy_ids(element: torch.Tensor, clusters: torch.Tensor) -> torch.Tensor:
 
 def element_diameter(means: torch.Tensor, element: torch.Tensor, min_size: int = 4) -> float:
     """Median element diameter of a labelled scene (see the module docstring); means [N, 3]."""
-    m = means.detach().double().numpy()
+    from .geometry import group_diameters
+
     e = element.numpy()
-    diam = []
-    for j in np.unique(e[e > 0]):
-        p = m[e == j]
-        if len(p) < min_size:
-            continue
-        diam.append(2 * np.quantile(np.linalg.norm(p - p.mean(0), axis=1), 0.9))
-    if not diam:
+    on = e > 0
+    _, groups, counts = np.unique(e[on], return_inverse=True, return_counts=True)
+    diam = group_diameters(groups, means.detach().double().numpy()[on])[counts >= min_size] if on.any() else []
+    if not len(diam):
         raise ValueError("element diameter: no element with at least %d Gaussians" % min_size)
     return float(np.median(diam))
 

@@ -160,3 +160,16 @@ def robust_bounds(points: torch.Tensor, q: float = 0.005) -> tuple[torch.Tensor,
     lo = torch.quantile(m, q, dim=0) if len(m) > 1 else m[0]
     hi = torch.quantile(m, 1 - q, dim=0) if len(m) > 1 else m[0]
     return 0.5 * (lo + hi), max(float(0.5 * (hi - lo).norm()), 1e-3)
+
+
+def group_diameters(labels: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """[K] each group's diameter (labels [N] in 0..K-1, points [N, 3]): twice the 90th percentile of its
+    points' distances to its centroid, so that a stray point does not set it (0 for an empty group)."""
+    K = int(labels.max()) + 1
+    cent = np.zeros((K, 3))
+    np.add.at(cent, labels, points)
+    cent /= np.maximum(np.bincount(labels, minlength=K), 1)[:, None]
+    d = np.linalg.norm(points - cent[labels], axis=1)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(K + 1))
+    return np.array([2 * np.quantile(d[order[a:b]], 0.9) if b > a else 0.0 for a, b in zip(bounds[:-1], bounds[1:])])
