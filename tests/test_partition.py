@@ -130,14 +130,16 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
         pts = torch.cat([uv, torch.zeros(n, 1)], 1)
         x = pts.double().numpy()
         by_count = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0))[0]
-        labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0, span=0.2))
+        cfg = ClusterConfig(target_cluster_size=800, flatness=0, span=0.2)
+        labels, _, info = kmeans(pts, torch.zeros_like(pts), cfg)
         widths.append(np.median(group_diameters(by_count, x)))
         spans.append(np.median(group_diameters(labels, x)) / (2 ** 0.5))  # the square's diameter: its diagonal
         assert info["span"]["clusters"] == labels.max() + 1 and info["span"]["clusters_by_count"] == round(n / 800)
     assert widths[1] < 0.6 * widths[0]
     assert spans == pytest.approx([0.2, 0.2], rel=0.15)  # one correction of the count: within 15 %
     # a cluster's diameter: twice the 90th percentile of its points' distances to its centroid
-    ring = np.stack([np.cos(np.linspace(0, 2 * np.pi, 100, endpoint=False)), np.sin(np.linspace(0, 2 * np.pi, 100, endpoint=False)), np.zeros(100)], 1)
+    t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    ring = np.stack([np.cos(t), np.sin(t), np.zeros(100)], 1)
     assert group_diameters(np.zeros(100, np.int64), ring) == pytest.approx([2.0])
 
 

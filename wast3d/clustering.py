@@ -82,7 +82,8 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
 
     def fit(k: int) -> tuple[np.ndarray, str]:
         if n * k > cfg.minibatch_above:
-            return MiniBatchKMeans(k, random_state=cfg.seed, batch_size=4096, n_init=3).fit_predict(feats), "MiniBatchKMeans"
+            km = MiniBatchKMeans(k, random_state=cfg.seed, batch_size=4096, n_init=3)
+            return km.fit_predict(feats), "MiniBatchKMeans"
         return KMeans(k, random_state=cfg.seed, n_init=1).fit_predict(feats), "KMeans"
 
     labels, algo = fit(k)
