@@ -59,10 +59,14 @@ class ClusterConfig:
     minibatch_above: int = option(20_000_000, "mini-batch k-means above this many points", minimum=1)
 
 
-def n_clusters_for(n_points: int, cfg: ClusterConfig) -> int:
+def n_clusters_for(n_points: int, cfg: ClusterConfig, count: float | None = None) -> int:
+    """``n_clusters`` when given, else ``count`` (default: points / target_cluster_size) rounded and clamped
+    to [1, min(max_clusters, n_points)]."""
     if cfg.n_clusters:
         return max(1, min(cfg.n_clusters, n_points))
-    return int(max(1, min(cfg.max_clusters, round(n_points / max(cfg.target_cluster_size, 1)), n_points)))
+    if count is None:
+        count = n_points / max(cfg.target_cluster_size, 1)
+    return int(max(1, min(cfg.max_clusters, round(count), n_points)))
 
 
 def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
@@ -93,7 +97,7 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
 
         D = 2 * robust_bounds(means)[1]
         got = float(np.median(group_diameters(labels, x))) / D
-        k1 = int(max(1, min(cfg.max_clusters, n, round(k * (got / cfg.span) ** 2))))
+        k1 = n_clusters_for(n, cfg, k * (got / cfg.span) ** 2)
         span = {"clusters_by_count": k, "diameter_by_count": got, "clusters": k1}
         log.info("k-means: %d clusters by count are a median %.3g of the content's diameter wide; span %.3g asks %d",
                  k, span["diameter_by_count"], cfg.span, k1)
