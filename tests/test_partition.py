@@ -136,7 +136,16 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
         spans.append(np.median(group_diameters(labels, x)) / (2 ** 0.5))  # the square's diameter: its diagonal
         assert info["span"]["clusters"] == labels.max() + 1 and info["span"]["clusters_by_count"] == round(n / 800)
     assert widths[1] < 0.6 * widths[0]
-    assert spans == pytest.approx([0.2, 0.2], rel=0.15)  # one correction of the count: within 15 %
+    assert spans == pytest.approx([0.2, 0.2], rel=0.15)
+    # a strip 10x as long as wide (the guitar's neck): clusters wider than the strip narrow as 1/k, not
+    # 1/sqrt(k), so one correction by the square misses; the exponent the fits measure lands within 10 %
+    n = 20000
+    pts = torch.cat([torch.rand(n, 1, generator=g), 0.1 * torch.rand(n, 1, generator=g), torch.zeros(n, 1)], 1)
+    labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0, span=0.3))
+    D = float(torch.tensor([1.0, 0.1]).norm())
+    fits = info["span"]["fits"]
+    assert len(fits) >= 3 and abs(fits[1]["diameter"] / D - 0.3) > 0.1 * 0.3
+    assert np.median(group_diameters(labels, pts.double().numpy())) / D == pytest.approx(0.3, rel=0.1)
     # a cluster's diameter: twice the 90th percentile of its points' distances to its centroid
     t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
     ring = np.stack([np.cos(t), np.sin(t), np.zeros(100)], 1)
@@ -898,7 +907,7 @@ def test_coherence_makes_interleaved_clusters_contiguous():
     """clustering.contiguous: two clusters interleaved at random over a plane (a split by noisy normals)
     become patches whose points' neighbours share their label; two clean halves stay as they are; and
     ClusterConfig.coherence does the same to k-means clusters that colour interleaves."""
-    from wast3d.clustering import contiguous
+    from wast3d.clustering import contiguous, own_share
     from wast3d.geometry import knn
 
     g = torch.Generator().manual_seed(0)
@@ -919,6 +928,15 @@ def test_coherence_makes_interleaved_clusters_contiguous():
     mixed = kmeans(pts.float(), rgb, cfg)[0]
     patches = kmeans(pts.float(), rgb, replace(cfg, coherence=3))[0]
     assert same(mixed) < 0.5 < 0.8 < same(patches), (same(mixed), same(patches))
+    assert own_share(mixed, pts.numpy()) == pytest.approx(same(mixed))
+    # coherence_below: the vote runs only where the clusters interleave
+    kept, _, info = kmeans(pts.float(), rgb, replace(cfg, coherence=3, coherence_below=0.1))
+    assert np.array_equal(kept, mixed) and info["coherence_relabelled"] == 0
+    assert info["own_share"] == pytest.approx(same(mixed))
+    compact = replace(cfg, colour_weight=0.0)
+    plain = kmeans(pts.float(), rgb, compact)[0]
+    voted, _, info = kmeans(pts.float(), rgb, replace(compact, coherence=3, coherence_below=0.75))
+    assert same(plain) > 0.75 and np.array_equal(voted, plain) and info["coherence_relabelled"] == 0
 
 
 def test_trim_keeps_the_part_copies_over_their_own_cluster():

@@ -3,8 +3,10 @@
 Features: ``[xyz / radius, colour_weight * rgb]`` (positions divided by the scene radius so that the
 colour weight means the same at every scene scale). Number of clusters: ``n_clusters`` when given
 (paper: 400), else ``round(points / target_cluster_size)`` clamped to [1, max_clusters]: a small scene
-gets few clusters of a useful size instead of 400 tiny ones. ``span`` > 0 corrects that count once, by
-``(d / (span D))^2`` with d the median diameter of the clusters it gave and D the content's diameter, so
+gets few clusters of a useful size instead of 400 tiny ones. ``span`` > 0 corrects that count by
+``(d / (span D))^(1/p)`` with d the median diameter of the clusters it gave, D the content's diameter and
+p the exponent of d ~ k^-p (1/2 on a patch, then measured from the last two fits), refitting until d
+is within ``SPAN_TOLERANCE`` of ``span D`` (at most ``SPAN_FITS`` fits; the closest kept), so
 that clusters are about as wide in the content's units (and so in the style's element lengths, which
 registration maps onto a fixed share of D) whatever the capture's density. scikit-learn's ``KMeans``
 (deterministic by seed) up to ``minibatch_above`` x clusters feature rows, ``MiniBatchKMeans`` beyond.
@@ -44,15 +46,19 @@ class ClusterConfig:
     flatness: float = option(0.5, "split clusters whose mean outward unit normal is shorter than this, in two by their "
                                   "normals, until flat (0: off, the paper)", minimum=0, maximum=1)
     coherence: int = option(0, "passes of a majority vote among each point's 16 nearest neighbours after k-means and "
-                               "the splits: clusters become contiguous patches (k-means on position and colour "
-                               "interleaves them on a textured capture, and a split by noisy normals into halves that"
-                               " interleave: the guitar's points had 57 % of their 8 nearest in their own cluster, "
-                               "the ant's 87 %); 0: off", minimum=0)
+                               "the splits, where the clusters interleave (coherence_below): they become contiguous "
+                               "patches (k-means on position and colour interleaves them on a textured capture, and a "
+                               "split by noisy normals into halves that interleave); 0: off", minimum=0)
+    coherence_below: float = option(1.0, "the vote runs only when fewer than this share of the points' 8 nearest "
+                                         "neighbours are in their own cluster (own_share; the guitar's capture 0.56-"
+                                         "0.61, the ant, the lego and the floaters at span 0.13: 0.84-0.90)",
+                                    minimum=0, maximum=1)
     span: float = option(0.0, "clusters about this wide, as a fraction of the content's diameter (robust_bounds, "
-                              "as register.element_scale's): the count from target_cluster_size is corrected once "
-                              "by the square of the median k-means cluster's diameter over this, before the splits "
-                              "(a count of points spans 1.3 element lengths on the guitar's dense capture, 2.1 on "
-                              "the ant); 0: the count alone", minimum=0)
+                              "as register.element_scale's): the count from target_cluster_size is corrected by "
+                              "the median k-means cluster's diameter over this (to the power 2, then the one the "
+                              "fits measure), refitted until within 5 %, before the splits (800 points span 0.084 of the guitar's "
+                              "dense capture, 0.128 of the ant, 0.36 of the floaters'); 0: the count alone",
+                         minimum=0)
     min_split: int = option(100, "a split never makes a cluster smaller than this many points", minimum=1)
     min_size: int = option(4, "smaller clusters are merged into their nearest neighbour", minimum=1)
     seed: int = option(0, "k-means seed")
@@ -96,28 +102,49 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
         from .geometry import group_diameters, robust_bounds
 
         D = 2 * robust_bounds(means)[1]
-        got = float(np.median(group_diameters(labels, x))) / D
-        k1 = n_clusters_for(n, cfg, k * (got / cfg.span) ** 2)
-        span = {"clusters_by_count": k, "diameter_by_count": got, "clusters": k1}
-        log.info("k-means: %d clusters by count are a median %.3g of the content's diameter wide; span %.3g asks %d",
-                 k, span["diameter_by_count"], cfg.span, k1)
-        if k1 != k:
-            k = k1
+        span = {"clusters_by_count": k, "fits": []}
+        power, best = 0.5, None  # the width falls as k^-power: 1/2 on a patch, up to 1 along a strip (a neck)
+        for i in range(SPAN_FITS):
+            got = float(np.median(group_diameters(labels, x))) / D
+            span["fits"].append({"clusters": k, "diameter": got})
+            if best is None or abs(np.log(got / cfg.span)) < abs(np.log(best[2] / cfg.span)):
+                best = (labels, algo, got, k)
+            if abs(got / cfg.span - 1) <= SPAN_TOLERANCE or i == SPAN_FITS - 1:
+                break
+            if i:  # the secant in log-log: the exponent the last two fits measured
+                (k0, d0), (k1, d1) = ((f["clusters"], f["diameter"]) for f in span["fits"][-2:])
+                if k0 != k1 and d0 != d1:
+                    power = float(np.clip(-np.log(d1 / d0) / np.log(k1 / k0), 0.25, 1.5))
+            k_next = n_clusters_for(n, cfg, k * (got / cfg.span) ** (1 / power))
+            if k_next == k:
+                break
+            k = k_next
             labels, algo = fit(k)
+        labels, algo, _, k = best
+        span["clusters"] = k
+        log.info("k-means: span %.3g of the content's diameter: %s clusters (median widths %s); %d kept", cfg.span,
+                 " -> ".join(str(f["clusters"]) for f in span["fits"]),
+                 ", ".join(f"{f['diameter']:.3g}" for f in span["fits"]), k)
     labels, merged = _merge_small(labels, feats, cfg.min_size)
     split = 0
     if cfg.flatness > 0:
         if normals is None or tuple(normals.shape) != tuple(means.shape):
             raise ValueError("k-means: flatness > 0 needs an outward normal [N, 3] per point")
         labels, split = split_wrapped(labels, normals.detach().double().cpu().numpy(), cfg)
-    changed = 0.0
+    changed, own = 0.0, None
     if cfg.coherence:
-        labels, changed = contiguous(labels, x, cfg.coherence)
+        own = own_share(labels, x)
+        if own < cfg.coherence_below:
+            labels, changed = contiguous(labels, x, cfg.coherence)
+        else:
+            log.info("k-means: no majority vote: %.2f of the points' %d nearest share their cluster (coherence_below "
+                     "%.2f)", own, OWN_K, cfg.coherence_below)
     K = labels.max() + 1
     cent = np.stack([x[labels == i].mean(0) for i in range(K)])
     sizes = np.bincount(labels, minlength=K)
     info = {"algorithm": algo, "requested_clusters": k, "clusters": int(K), "merged_small_clusters": merged,
-            "split_wrapped_clusters": split, "coherence_relabelled": changed, "span": span,
+            "split_wrapped_clusters": split, "own_share": own, "coherence_relabelled": changed,
+            "span": span,
             "size_min": int(sizes.min()), "size_median": float(np.median(sizes)), "size_max": int(sizes.max()),
             "points": n}
     log.info("k-means (%s): %d clusters of %d..%d points (median %.0f)", algo, K, sizes.min(), sizes.max(),
@@ -126,6 +153,21 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
 
 
 COHERENCE_K = 16  # neighbours of the majority vote (clustering.contiguous)
+OWN_K = 8  # neighbours of own_share
+SPAN_FITS = 5  # k-means fits at most when span corrects the count ...
+SPAN_TOLERANCE = 0.05  # ... until the median width is within this share of span
+
+
+def own_share(labels: np.ndarray, points: np.ndarray, k: int = OWN_K) -> float:
+    """Share of the pairs (point of points [N, 3], one of its ``k`` nearest neighbours) whose labels [N]
+    agree: near 1 for compact patches (only their borders disagree), lower where clusters interleave."""
+    from .geometry import kdtree
+
+    k = min(k, len(points) - 1)
+    if k < 1:
+        return 1.0
+    nb = kdtree(points).query(points, k=k + 1)[1][:, 1:]
+    return float((labels[nb] == labels[:, None]).mean())
 
 
 def contiguous(labels: np.ndarray, points: np.ndarray, passes: int, k: int = COHERENCE_K) -> tuple[np.ndarray, float]:
