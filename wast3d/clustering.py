@@ -56,9 +56,9 @@ class ClusterConfig:
     span: float = option(0.0, "clusters about this wide, as a fraction of the content's diameter (robust_bounds, "
                               "as register.element_scale's): the count from target_cluster_size is corrected by "
                               "the median k-means cluster's diameter over this (to the power 2, then the one the "
-                              "fits measure), refitted until within 5 %, before the splits (800 points span 0.084 of the guitar's "
-                              "dense capture, 0.128 of the ant, 0.36 of the floaters'); 0: the count alone",
-                         minimum=0)
+                              "fits measure), refitted until within 5 %, before the splits (800 points span 0.084 "
+                              "of the guitar's dense capture, 0.128 of the ant, 0.36 of the floaters'); 0: the "
+                              "count alone", minimum=0)
     min_split: int = option(100, "a split never makes a cluster smaller than this many points", minimum=1)
     min_size: int = option(4, "smaller clusters are merged into their nearest neighbour", minimum=1)
     seed: int = option(0, "k-means seed")
