@@ -146,6 +146,10 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
     fits = info["span"]["fits"]
     assert len(fits) >= 3 and abs(fits[1]["diameter"] / D - 0.3) > 0.1 * 0.3
     assert np.median(group_diameters(labels, pts.double().numpy())) / D == pytest.approx(0.3, rel=0.1)
+    # clusters without a width (one point each, or coincident points) keep their count
+    for pts, size in ((torch.rand(3, 3, generator=g), 1), (torch.zeros(100, 3), 10)):
+        labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=size, flatness=0, span=0.1))
+        assert info["span"]["clusters"] == len(pts) // size and len(info["span"]["fits"]) == 1
     # a cluster's diameter: twice the 90th percentile of its points' distances to its centroid
     t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
     ring = np.stack([np.cos(t), np.sin(t), np.zeros(100)], 1)
