@@ -120,6 +120,7 @@ def test_kmeans_deterministic_and_sizes():
     assert n_clusters_for(1000, ClusterConfig(n_clusters=7)) == 7
 
 
+@pytest.mark.filterwarnings("ignore:Number of distinct clusters")  # the coincident points, on purpose
 def test_kmeans_span_sizes_clusters_by_width_not_by_count():
     # the same square sampled sparsely and 4x as densely: 800-point clusters are half as wide on the
     # dense one; with span, both come out about span x the diameter wide
