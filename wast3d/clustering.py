@@ -51,7 +51,7 @@ class ClusterConfig:
                                "split by noisy normals into halves that interleave); 0: off", minimum=0)
     coherence_below: float = option(1.0, "the vote runs only when fewer than this share of the points' 8 nearest "
                                          "neighbours are in their own cluster (own_share; the guitar's capture 0.56-"
-                                         "0.61, the ant, the lego and the floaters at span 0.13: 0.84-0.90)",
+                                         "0.62, the ant, the lego and the floaters at span 0.13: 0.81-0.91)",
                                     minimum=0, maximum=1)
     span: float = option(0.0, "clusters about this wide, as a fraction of the content's diameter (robust_bounds, "
                               "as register.element_scale's): the count from target_cluster_size is corrected by "
