@@ -66,8 +66,10 @@ class RenderConfig:
     frames: turntable frames (one orbit at ``elevation`` degrees); size: frame width = height (px);
     key_views: frames (evenly spaced) that also get depth and normal maps; closeup_zoom: magnification
     of the close-up (the fragment a ``size / zoom`` pixel window of the first key view shows, centred on
-    the fragment pixel); closeup_size: the close-up's width = height in px (0: ``size``); normals: "axis" (each Gaussian's shortest axis, alpha-blended) or "depth"
-    (finite differences of the expected-depth map); fps: GIF frame rate.
+    the fragment pixel); closeup_size: the close-up's width = height in px (0: ``size``); normals: "depth" (finite differences
+    of the expected-depth map: the rendered surface's relief, domes and blades) or "axis" (each
+    Gaussian's shortest axis, alpha-blended; on a trained scene's many small, blob-like Gaussians a
+    mosaic of discs whatever the surface's shape); fps: GIF frame rate.
     """
 
     frames: int = option(24, "turntable frames", minimum=1)
@@ -77,8 +79,8 @@ class RenderConfig:
     key_views: int = option(4, "evenly spaced frames that also get depth and normal maps", minimum=1)
     closeup_zoom: float = option(3.0, "magnification of the close-up", minimum=1)
     closeup_size: int = option(0, "close-up side in pixels (0: size)", minimum=0)
-    normals: str = option("axis", "axis: each Gaussian's shortest axis, alpha-blended; depth: from the depth map",
-                                  enum=["axis", "depth"])
+    normals: str = option("depth", "depth: from the depth map (the rendered surface's relief); axis: each Gaussian's "
+                                   "shortest axis, alpha-blended", enum=["axis", "depth"])
     fps: float = option(8.0, "GIF frame rate", exclusiveMinimum=0)
     background: tuple = (1.0, 1.0, 1.0)
 
