@@ -66,10 +66,10 @@ class RenderConfig:
     frames: turntable frames (one orbit at ``elevation`` degrees); size: frame width = height (px);
     key_views: frames (evenly spaced) that also get depth and normal maps; closeup_zoom: magnification
     of the close-up (the fragment a ``size / zoom`` pixel window of the first key view shows, centred on
-    the fragment pixel); closeup_size: the close-up's width = height in px (0: ``size``); normals: "depth" (finite differences
-    of the expected-depth map: the rendered surface's relief, domes and blades) or "axis" (each
-    Gaussian's shortest axis, alpha-blended; on a trained scene's many small, blob-like Gaussians a
-    mosaic of discs whatever the surface's shape); fps: GIF frame rate.
+    the fragment pixel); closeup_size: the close-up's width = height in px (0: ``size``); normals:
+    "depth" (finite differences of the expected-depth map: the rendered surface's relief, domes and
+    blades) or "axis" (each Gaussian's shortest axis, alpha-blended; on a trained scene's many small,
+    blob-like Gaussians a mosaic of discs whatever the surface's shape); fps: GIF frame rate.
     """
 
     frames: int = option(24, "turntable frames", minimum=1)
