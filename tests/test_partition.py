@@ -1,5 +1,6 @@
 from dataclasses import replace
 
+import json
 import math
 import numpy as np
 import pytest
@@ -8,7 +9,8 @@ import torch
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
 from wast3d.geometry import _flushing_denormals, frame_from_normal, group_diameters, kdtree, knn
-from wast3d.registration import Registration, RegistrationConfig, base_scale, random_rotation, register, relief, relief_length
+from wast3d.registration import (Registration, RegistrationConfig, base_scale, element_size_factors, element_size_report,
+                                 random_rotation, register, relief, relief_length)
 from wast3d.selection import SelectConfig, select, select_footprint, select_with, thin
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
 
@@ -50,6 +52,32 @@ def test_registration_recovers_known_transform():
         assert torch.allclose(reg.R[i], R, atol=1e-6) and torch.allclose(reg.s[i], s, atol=1e-6)
         assert float(reg.residual[i]) < 1e-6 < float(reg.residual_init[i])
     assert torch.allclose(reg.inverse(reg.apply(P, L), L), P, atol=1e-9)
+    # the patch's up is about z (its fitted normal is 6 degrees off), so the elements' width on the content
+    # follows the in-plane scales 0.5 and 0.6
+    want = torch.full((4,), reg.s0 / math.sqrt(0.5 * 0.6), dtype=D64)
+    assert torch.allclose(element_size_factors(reg), want, rtol=2e-3)
+
+
+def test_element_size_factors_follow_the_scale_in_the_styles_plane():
+    """The normal's scale does not change the elements' width; the in-plane scales do, for any up; the
+    report counts the clusters with an axis at scale_range's bound."""
+    def reg_with(s, up, s0=2.0):
+        K = len(s)
+        z = torch.zeros(K, 3, dtype=D64)
+        return Registration(R=torch.eye(3, dtype=D64).expand(K, 3, 3), s=torch.tensor(s, dtype=D64), t=z, p=z, mu=z,
+                            residual_init=z[:, 0], residual=z[:, 0], s0=s0, style_spacing=1.0,
+                            style_up=torch.tensor(up, dtype=D64))
+
+    f = element_size_factors(reg_with([[2, 2, 1], [2 / 1.5] * 3, [1, 4, 7], [5, 1, 4]], [0, 0, 1]))
+    assert torch.allclose(f, torch.tensor([1, 1.5, 1, 2 / math.sqrt(5)], dtype=D64))
+    f = element_size_factors(reg_with([[1, 2, 2], [3, 1, 4]], [-1, 0, 0]))  # up along -x: y and z in the plane
+    assert torch.allclose(f, torch.tensor([1, 1], dtype=D64))
+    u = torch.tensor([1.0, 0, 1], dtype=D64) / math.sqrt(2)  # a tilted plane: between the two
+    f = float(element_size_factors(reg_with([[1, 2, 2]], u.tolist())))
+    assert 1 < f < math.sqrt(2)
+    # at the bound: the second (every axis) and the third (x); the first's bound is on its normal only
+    rep = element_size_report(reg_with([[2, 2, 2 / 1.5], [2 / 1.5] * 3, [3, 2, 2], [2, 2, 2]], [0, 0, 1]), 1.5)
+    assert rep["clusters_at_scale_bound"] == 0.5 and rep["median"] == pytest.approx(1.0)
 
 
 def test_registration_degenerate_clusters_are_finite_and_proper():
@@ -881,6 +909,11 @@ def test_register_stage_names_the_clusters_file_when_its_normals_do_not_fit(tmp_
     with pytest.raises(ValueError, match=r"clusters\.npz: 'normals' has shape \(59, 3\)"):
         run_register(content=tmp_path / "c.ply", clusters=tmp_path / "clusters.npz", style=tmp_path / "s.ply",
                      out_npz=tmp_path / "r.npz", params={})
+    save_npz(tmp_path / "clusters.npz", labels=np.arange(60, dtype=np.int64) % 3)
+    run_register(content=tmp_path / "c.ply", clusters=tmp_path / "clusters.npz", style=tmp_path / "s.ply",
+                 out_npz=tmp_path / "r.npz", params={"iterations": 3, "refine_iterations": 3})
+    size = json.loads((tmp_path / "r.json").read_text())["element_size_factor"]
+    assert 1 / 1.5 - 1e-9 <= size["p10"] <= size["median"] <= size["p90"] <= 1.5 + 1e-9
 
 
 def test_a_thinned_selection_reaches_stylize_enlarged():

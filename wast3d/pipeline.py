@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -117,20 +118,26 @@ def _labels(path: Path, n: int) -> torch.Tensor:
 
 def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, params: dict,
                  out_picture: Path | None = None) -> None:
-    from .registration import RegistrationConfig, register
+    from .registration import RegistrationConfig, element_size_report, register
 
     cfg = make_config(RegistrationConfig, params, "register")
-    content, style = read_ply(content), read_ply(style)
+    style_path, content, style = style, read_ply(content), read_ply(style)
     cl = _clusters(clusters, len(content))
     labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
     reg = register(content.means, labels, style.means, cfg,
                    normals=None if normals is None else torch.from_numpy(normals))
     save_npz(out_npz, **reg.to_npz())
+    size = element_size_report(reg, cfg.scale_range)
+    (log.warning if abs(math.log(size["median"])) > math.log(1.2) else log.info)(  # a fifth off: say it louder
+        "registration: %s's elements come out a median %.2fx (10-90 %%: %.2f-%.2fx) the size s0 asks; eq. 7's "
+        "scale moves within register.scale_range %.3g (%.0f %% of clusters at a bound in the style's plane)", style_path, size["median"],
+        size["p10"], size["p90"], cfg.scale_range, 100 * size["clusters_at_scale_bound"])
     write_json(Path(out_npz).with_suffix(".json"), {
         "clusters": len(reg.R), "s0": reg.s0, "style_spacing": reg.style_spacing,
         "residual_init_mean": float(reg.residual_init.mean()), "residual_mean": float(reg.residual.mean()),
         "residual_quantiles": {q: float(torch.quantile(reg.residual, q)) for q in (0.05, 0.5, 0.95)},
-        "units": "mean nearest-style-neighbour distance / mean style spacing"})
+        "units": "mean nearest-style-neighbour distance / mean style spacing",
+        "element_size_factor": size})
     if out_picture:
         from .figures import registration_picture
 
