@@ -130,8 +130,8 @@ def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, p
     size = element_size_report(reg, cfg.scale_range)
     (log.warning if abs(math.log(size["median"])) > math.log(1.2) else log.info)(  # a fifth off: say it louder
         "registration: %s's elements come out a median %.2fx (10-90 %%: %.2f-%.2fx) the size s0 asks; eq. 7's "
-        "scale moves within register.scale_range %.3g (%.0f %% of clusters at a bound in the style's plane)", style_path, size["median"],
-        size["p10"], size["p90"], cfg.scale_range, 100 * size["clusters_at_scale_bound"])
+        "scale moves within register.scale_range %.3g (%.0f %% of clusters at a bound in the style's plane)",
+        style_path, size["median"], size["p10"], size["p90"], cfg.scale_range, 100 * size["clusters_at_scale_bound"])
     write_json(Path(out_npz).with_suffix(".json"), {
         "clusters": len(reg.R), "s0": reg.s0, "style_spacing": reg.style_spacing,
         "residual_init_mean": float(reg.residual_init.mean()), "residual_mean": float(reg.residual.mean()),
