@@ -113,7 +113,7 @@ def kmeans(means: torch.Tensor, rgb: torch.Tensor, cfg: ClusterConfig,
                 break  # (clusters of one point or of coincident points have no width to correct by)
             if i:  # the secant in log-log: the exponent the last two fits measured
                 (k0, d0), (k1, d1) = ((f["clusters"], f["diameter"]) for f in span["fits"][-2:])
-                if k0 != k1 and d0 != d1 and d0 > 0:
+                if k0 != k1 and d0 != d1:  # both > 0: a fit without a width stopped the loop
                     power = float(np.clip(-np.log(d1 / d0) / np.log(k1 / k0), 0.25, 1.5))
             k_next = n_clusters_for(n, cfg, k * (got / cfg.span) ** (1 / power))
             if k_next == k:
