@@ -580,6 +580,36 @@ def test_smoothing_within_a_radius_reaches_as_far_whatever_the_density():
         StylizeConfig(smooth_radius=-1.0)
 
 
+def test_smoothing_reach_widens_to_the_kth_nearest_on_a_sparse_style():
+    """smoothing_reach = max(smooth_radius L, min(d_k, smooth_radius_max L)): d_k the median distance to
+    the smooth_neighbours-th nearest (neighbour_distance, known on a grid); a dense style keeps
+    smooth_radius L, the same style thinned 20-fold gets d_k (1.6 L) up to the cap, and
+    smooth_neighbours 0 switches the widening off."""
+    from wast3d.procedural import style_pebbles
+    from wast3d.registration import relief
+    from dataclasses import replace
+
+    from wast3d.stylize import StylizeConfig, neighbour_distance, smoothing_reach
+
+    g = torch.stack(torch.meshgrid(torch.arange(30.0), torch.arange(30.0), indexing="ij"), -1).reshape(-1, 2)
+    grid = torch.cat([g, torch.zeros(len(g), 1)], 1)
+    assert neighbour_distance(grid, 4) == pytest.approx(1.0)  # interior points: 4 at 1, then 4 at sqrt 2
+    assert neighbour_distance(grid, 8) == pytest.approx(2 ** 0.5)
+    assert neighbour_distance(grid[:5], 8) == float("inf")
+    style = style_pebbles(30000, seed=0)
+    L = relief(style.means, up="z").length
+    cfg = StylizeConfig(smooth_radius=0.25, smooth_neighbours=16)
+    assert neighbour_distance(style.means, 16) < 0.25 * L
+    assert smoothing_reach(style, "z", cfg) == pytest.approx(0.25 * L)
+    sparse = style.subset(torch.arange(0, len(style.means), 20))
+    Ls, d = relief(sparse.means, up="z").length, neighbour_distance(sparse.means, 16)
+    assert d > 0.5 * Ls
+    assert smoothing_reach(sparse, "z", replace(cfg, smooth_radius_max=10.0)) == pytest.approx(d)
+    assert smoothing_reach(sparse, "z", replace(cfg, smooth_radius_max=0.5)) == pytest.approx(0.5 * Ls)
+    assert smoothing_reach(sparse, "z", replace(cfg, smooth_radius_max=0.1)) == pytest.approx(0.25 * Ls)
+    assert smoothing_reach(sparse, "z", replace(cfg, smooth_neighbours=0)) == pytest.approx(0.25 * Ls)
+
+
 def test_stylize_solver_defaults_live_in_one_dataclass():
     """Eq. 9's solver defaults (gamma 0.3 of the cluster radius, tol 1e-3) are StylizeSinkhornConfig's
     fields; a partial block keeps them, an unknown key is named."""

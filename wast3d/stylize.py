@@ -25,7 +25,9 @@ For cluster i, in the registered (style) frame:
   motion towards their targets, so an element made of many trained Gaussians moves whole;
 - displacement smoothing (``smooth_passes``, default on where the parts are left out: blades, strands,
   :func:`smooth_displacements`): each step averaged over the neighbours within ``smooth_radius`` relief
-  lengths, 16 times, so a blade's Gaussians move together and it still bends with the content.
+  lengths (on a sparse style, as far as its ``smooth_neighbours``-th nearest, at most ``smooth_radius_max``:
+  :func:`smoothing_reach`),
+  16 times, so a blade's Gaussians move together and it still bends with the content.
   Clusters are independent terms of eq. 9 and both optimizers act per coordinate, so optimizing them
   together (one packed Sinkhorn solve per step over ``batch`` clusters, :func:`stylize_clusters`) is
   the same as optimizing the sum, and the same as one cluster after another;
@@ -122,8 +124,15 @@ class StylizeConfig:
                                      "along the style's up (up: elements keep their relief, move freely across the "
                                      "surface)", enum=SMOOTH_AXES)
     smooth_radius: float = option(0.25, "displacement smoothing: a pass averages only over the neighbours within this "
-                                        "many style relief lengths (a reach in length, whatever the style's density); "
-                                        "0: over all smooth_k neighbours", minimum=0)
+                                         "many style relief lengths (a reach in length, whatever the style's density); "
+                                         "0: over all smooth_k neighbours", minimum=0)
+    smooth_neighbours: int = option(16, "displacement smoothing: where the style is so sparse that smooth_radius holds "
+                                        "fewer neighbours, the radius widens to the median distance of a Gaussian's "
+                                        "this-many-th nearest, up to smooth_radius_max (the trained weave: 0.25 -> 0.5 "
+                                        "relief lengths; every grass keeps 0.25); 0: smooth_radius alone", minimum=0)
+    smooth_radius_max: float = option(0.5, "displacement smoothing: smooth_neighbours widens the radius to at most this "
+                                           "many relief lengths (half an element: farther, a pass ties neighbouring "
+                                           "elements into plates)", minimum=0)
     smooth_with_parts: bool = option(False, "displacement smoothing also where parts move the style; false: only where "
                                             "the parts are left out (a steep relief, or parts 0), whose Gaussians would"
                                             " otherwise each move on their own")
@@ -403,14 +412,35 @@ def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | N
     return part
 
 
+def neighbour_distance(points: torch.Tensor, k: int, sample: int = 20000) -> float:
+    """points [M, 3] -> the median over (at most ``sample``, evenly strided) points of the distance to
+    their k-th nearest other point (inf where there are at most k points)."""
+    from .geometry import kdtree
+
+    x = points.detach().double().cpu().numpy()
+    if len(x) <= k:
+        return float("inf")
+    q = x[::max(1, len(x) // sample)]
+    d, _ = kdtree(x).query(q, k=k + 1)
+    return float(np.median(d[:, k]))
+
+
 def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | None:
     """The displacement smoothing's neighbourhood radius in the style's units, ``smooth_radius`` relief
-    lengths (:func:`~wast3d.registration.relief`), or None (no limit: ``smooth_k`` nearest, whatever
-    their distance) when smoothing is off, ``smooth_radius`` is 0 or the style has no relief.
+    lengths L (:func:`~wast3d.registration.relief`), widened to :func:`neighbour_distance` d_k of the
+    ``smooth_neighbours``-th nearest where that is farther, up to ``smooth_radius_max`` L:
+    ``r = max(smooth_radius L, min(d_k, smooth_radius_max L))``. None (no limit: ``smooth_k`` nearest,
+    whatever their distance) when smoothing is off, ``smooth_radius`` is 0 or the style has no relief.
 
     Why a length: the k nearest neighbours span a distance set by the style's density, so 16 passes
     over 16 neighbours reach about half a relief length on the demo's trained grass (1,000 Gaussians a
-    cluster) and two on its trained wicker (50 a cluster), where they make each cluster one rigid plate."""
+    cluster) and two on its trained wicker (50 a cluster), where they make each cluster one rigid plate.
+    Why the floor in neighbours: a quarter L holds a median 27 of the trained grass's Gaussians but 5
+    of the trained weave's, whose strands then tear (intact 0.58); its 16th nearest lies at 0.51 L,
+    and at half an L they stay whole (0.89), while half an L on the grass moves it in plates that leave
+    the guitar capture's shape (coarse 1.18 -> 1.67). Why the cap: on the fruit capture's sparse label
+    the 16th nearest lies at 1.21 L, and there the clusters move as plates (coarse 4.69; 1.69 at the
+    cap; docs/measurements.md, session 35)."""
     from .registration import relief
 
     if not (cfg.smooth_passes and cfg.smooth_radius > 0):
@@ -420,9 +450,18 @@ def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | Non
     except ValueError as e:
         log.warning("stylize: displacement smoothing over the %d nearest, at any distance (no relief: %s)", cfg.smooth_k, e)
         return None
-    log.info("stylize: displacement smoothing within %.4g (%g relief lengths of %.4g), %d passes",
-             cfg.smooth_radius * rel.length, cfg.smooth_radius, rel.length, cfg.smooth_passes)
-    return cfg.smooth_radius * rel.length
+    r = cfg.smooth_radius * rel.length
+    d = neighbour_distance(style.means, cfg.smooth_neighbours) if cfg.smooth_neighbours else 0.0
+    if d > r:
+        w = min(d, max(cfg.smooth_radius_max * rel.length, r))
+        log.info("stylize: displacement smoothing within %.4g (%.3g relief lengths of %.4g: this sparse style's %d-th "
+                 "nearest lies at %.3g, farther than smooth_radius %g; smooth_radius_max %g), %d passes", w,
+                 w / rel.length, rel.length, cfg.smooth_neighbours, d / rel.length, cfg.smooth_radius,
+                 cfg.smooth_radius_max, cfg.smooth_passes)
+        return w
+    log.info("stylize: displacement smoothing within %.4g (%g relief lengths of %.4g; the %d-th nearest at %.3g), "
+             "%d passes", r, cfg.smooth_radius, rel.length, cfg.smooth_neighbours, d / rel.length, cfg.smooth_passes)
+    return r
 
 
 def part_centroids(v: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
