@@ -124,8 +124,8 @@ class StylizeConfig:
                                      "along the style's up (up: elements keep their relief, move freely across the "
                                      "surface)", enum=SMOOTH_AXES)
     smooth_radius: float = option(0.25, "displacement smoothing: a pass averages only over the neighbours within this "
-                                         "many style relief lengths (a reach in length, whatever the style's density); "
-                                         "0: over all smooth_k neighbours", minimum=0)
+                                        "many style relief lengths (a reach in length, whatever the style's density); "
+                                        "0: over all smooth_k neighbours", minimum=0)
     smooth_neighbours: int = option(16, "displacement smoothing: where the style is so sparse that smooth_radius holds "
                                         "fewer neighbours, the radius widens to the median distance of a Gaussian's "
                                         "this-many-th nearest, up to smooth_radius_max (the trained weave: 0.25 -> 0.5 "
@@ -459,8 +459,9 @@ def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | Non
                  w / rel.length, rel.length, cfg.smooth_neighbours, d / rel.length, cfg.smooth_radius,
                  cfg.smooth_radius_max, cfg.smooth_passes)
         return w
-    log.info("stylize: displacement smoothing within %.4g (%g relief lengths of %.4g; the %d-th nearest at %.3g), "
-             "%d passes", r, cfg.smooth_radius, rel.length, cfg.smooth_neighbours, d / rel.length, cfg.smooth_passes)
+    near = f"; the {cfg.smooth_neighbours}-th nearest at {d / rel.length:.3g}" if cfg.smooth_neighbours else ""
+    log.info("stylize: displacement smoothing within %.4g (%g relief lengths of %.4g%s), %d passes", r,
+             cfg.smooth_radius, rel.length, near, cfg.smooth_passes)
     return r
 
 
