@@ -585,10 +585,10 @@ def test_smoothing_reach_widens_to_the_kth_nearest_on_a_sparse_style():
     the smooth_neighbours-th nearest (neighbour_distance, known on a grid); a dense style keeps
     smooth_radius L, the same style thinned 20-fold gets d_k (1.6 L) up to the cap, and
     smooth_neighbours 0 switches the widening off."""
-    from wast3d.procedural import style_pebbles
-    from wast3d.registration import relief
     from dataclasses import replace
 
+    from wast3d.procedural import style_pebbles
+    from wast3d.registration import relief
     from wast3d.stylize import StylizeConfig, neighbour_distance, smoothing_reach
 
     g = torch.stack(torch.meshgrid(torch.arange(30.0), torch.arange(30.0), indexing="ij"), -1).reshape(-1, 2)

@@ -415,14 +415,11 @@ def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | N
 def neighbour_distance(points: torch.Tensor, k: int, sample: int = 20000) -> float:
     """points [M, 3] -> the median over (at most ``sample``, evenly strided) points of the distance to
     their k-th nearest other point (inf where there are at most k points)."""
-    from .geometry import kdtree
-
-    x = points.detach().double().cpu().numpy()
+    x = points.detach().double().cpu()
     if len(x) <= k:
         return float("inf")
-    q = x[::max(1, len(x) // sample)]
-    d, _ = kdtree(x).query(q, k=k + 1)
-    return float(np.median(d[:, k]))
+    d, _ = knn(x[::max(1, len(x) // sample)], x, k, exclude_self=True)
+    return float(np.median(d[:, -1].numpy()))  # the mean of the middle two, as numpy (torch takes the lower)
 
 
 def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | None:
@@ -450,19 +447,15 @@ def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | Non
     except ValueError as e:
         log.warning("stylize: displacement smoothing over the %d nearest, at any distance (no relief: %s)", cfg.smooth_k, e)
         return None
-    r = cfg.smooth_radius * rel.length
-    d = neighbour_distance(style.means, cfg.smooth_neighbours) if cfg.smooth_neighbours else 0.0
-    if d > r:
-        w = min(d, max(cfg.smooth_radius_max * rel.length, r))
-        log.info("stylize: displacement smoothing within %.4g (%.3g relief lengths of %.4g: this sparse style's %d-th "
-                 "nearest lies at %.3g, farther than smooth_radius %g; smooth_radius_max %g), %d passes", w,
-                 w / rel.length, rel.length, cfg.smooth_neighbours, d / rel.length, cfg.smooth_radius,
-                 cfg.smooth_radius_max, cfg.smooth_passes)
-        return w
-    near = f"; the {cfg.smooth_neighbours}-th nearest at {d / rel.length:.3g}" if cfg.smooth_neighbours else ""
-    log.info("stylize: displacement smoothing within %.4g (%g relief lengths of %.4g%s), %d passes", r,
-             cfg.smooth_radius, rel.length, near, cfg.smooth_passes)
-    return r
+    L, k = rel.length, cfg.smooth_neighbours
+    d = neighbour_distance(style.means, k) if k else 0.0
+    w = max(cfg.smooth_radius * L, min(d, cfg.smooth_radius_max * L))
+    why = "" if not k else (f"; the {k}-th nearest at {d / L:.3g} L" if w <= cfg.smooth_radius * L else
+                            f": this sparse style's {k}-th nearest lies at {d / L:.3g} L, farther than smooth_radius "
+                            f"{cfg.smooth_radius:g}; smooth_radius_max {cfg.smooth_radius_max:g}")
+    log.info("stylize: displacement smoothing within %.4g (%.3g relief lengths of %.4g%s), %d passes", w, w / L, L, why,
+             cfg.smooth_passes)
+    return w
 
 
 def part_centroids(v: torch.Tensor, part: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
