@@ -3,13 +3,14 @@
     python benchmarks/dome_share.py [--seeds 4] [--out results/benchmarks/dome_share.csv]
 
 ``stylize.parts_shape: auto`` takes the relief's basins instead of the k-means parts where the median
-basin keeps less than ``parts_dome_cut`` of its Gaussians in one k-means part. This reads that share,
+basin keeps less than ``parts_dome_cut`` of its Gaussians in one k-means part of ``parts_dome_probe``
+relief lengths (whatever ``parts`` is). This reads that share,
 with the stage's own functions and defaults (``stylize.flow_parts``' relief, k-means parts and basins),
 on four patches of the procedural pebbles and stones (seeds 0..N-1, 30k and 8k Gaussians) and on the
 cleaned trained copies the workflow made (``results/scenes/{pebbles,stones}{_trained,_s05,_s20,_s40}/
 style.ply``, where present: config/min_seen.yaml), with what the labels say of each cut: the median
 element's share of its Gaussians in one part (``whole``) and the lowest quarter's, for the k-means
-parts, the basins and the one auto chose. Prints the range per style family and the gap the threshold
+parts (of ``parts`` and of the probe's size), the basins and the one auto chose. Prints the range per style family and the gap the threshold
 must sit in.
 """
 
@@ -62,24 +63,26 @@ def main() -> None:
         up = style_up(s.means, "z").tolist()
         rel = relief(s.means, up=up)
         kmeans = style_parts(s.means, s.rgb, up, cfg.parts * rel.length, cfg.parts_colour)
+        probe = style_parts(s.means, s.rgb, up, cfg.parts_dome_probe * rel.length, cfg.parts_colour)
         basins = relief_basins(s.means, up, rel.length)
         auto = flow_parts(s, up, cfg)
         row = {"family": family, "source": source, "seed": seed, "gaussians": len(s), "aspect": rel.aspect,
-               "dome_share": dome_share(basins, kmeans), "chose": "relief" if torch_equal(auto, basins) else "kmeans"}
+               "dome_share": dome_share(basins, probe), "chose": "relief" if torch_equal(auto, basins) else "kmeans"}
         if s.element is not None:
             el = s.element.numpy()
-            for name, part in (("kmeans", kmeans), ("basins", basins), ("auto", auto)):
+            for name, part in (("kmeans", kmeans), ("probe", probe), ("basins", basins), ("auto", auto)):
                 row[f"whole_{name}"] = whole(part.numpy(), el, 0.5)
                 row[f"q25_{name}"] = whole(part.numpy(), el, 0.25)
         rows.append(row)
         print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     df = write_rows(rows, a.out)
-    print(f"\nparts_dome_cut {cfg.parts_dome_cut}:")
+    print(f"\nparts_dome_cut {cfg.parts_dome_cut} at parts_dome_probe {cfg.parts_dome_probe} (parts {cfg.parts}):")
     for family in FAMILIES:
         d = df[df.family == family]
         print(f"  {family:8s} dome_share {d.dome_share.min():.3f}-{d.dome_share.max():.3f} over {len(d)} scenes; "
               f"chose {({k: int(v) for k, v in d.chose.value_counts().items()})}; median element whole: k-means "
-              f"{d.whole_kmeans.min():.3f}-{d.whole_kmeans.max():.3f}, basins {d.whole_basins.min():.3f}-"
+              f"{d.whole_kmeans.min():.3f}-{d.whole_kmeans.max():.3f} (at the probe {d.whole_probe.min():.3f}-"
+              f"{d.whole_probe.max():.3f}), basins {d.whole_basins.min():.3f}-"
               f"{d.whole_basins.max():.3f}, auto {d.whole_auto.min():.3f}-{d.whole_auto.max():.3f}")
     print(f"wrote {a.out}")
 

@@ -72,6 +72,7 @@ MASSES = ("uniform", "area", "style-area")
 SMOOTH_AXES = ("all", "up")
 PART_MOTIONS = ("translation", "rigid")
 PART_SHAPES = ("auto", "kmeans", "relief")
+PART_STARTS = ("cells", "basins")
 
 
 @dataclass
@@ -136,19 +137,30 @@ class StylizeConfig:
     smooth_with_parts: bool = option(False, "displacement smoothing also where parts move the style; false: only where "
                                             "the parts are left out (a steep relief, or parts 0), whose Gaussians would"
                                             " otherwise each move on their own")
-    parts: float = option(0.8, "piecewise-rigid flow: the style cut into parts this many style relief lengths across "
-                               "(k-means on position and colour), each moving as one, so that elements made of many "
-                               "Gaussians move whole (0: off)", minimum=0)
-    parts_shape: str = option("auto", "how the style is cut into parts: kmeans (of one size, parts relief lengths "
-                                      "across, on position and colour), relief (the watershed basins of its top "
+    parts: float = option(1.2, "piecewise-rigid flow: the style cut into parts (k-means on [position / (parts relief "
+                               "lengths), colour]: parts about this many relief lengths across), each moving as one, "
+                               "so that elements made of many Gaussians move whole (0: off)", minimum=0)
+    parts_shape: str = option("auto", "how the style is cut into parts: kmeans (parts relief lengths across, on "
+                                      "position and colour, started as parts_start says), relief (the watershed basins of its top "
                                       "surface: one part per dome, whatever its size, bordered by the crevices) or "
-                                      "auto (kmeans, or relief where the k-means parts cut the domes: the median "
-                                      "basin keeps less than parts_dome_cut of its Gaussians in one part); parts > 0 "
+                                      "auto (kmeans, or relief where parts of one size, parts_dome_probe relief "
+                                      "lengths from cells, cut the domes: the median basin keeps less than "
+                                      "parts_dome_cut of its Gaussians in one part); parts > 0 "
                                       "turns them on", enum=PART_SHAPES)
     parts_dome_cut: float = option(0.65, "parts_shape auto: the basins replace the k-means parts where the median "
                                          "basin (of 8 Gaussians or more) keeps less than this share of its Gaussians "
                                          "in one k-means part (procedural and trained stones 0.48-0.60, pebbles "
                                          "0.69-0.80)", minimum=0, maximum=1)
+    parts_dome_probe: float = option(0.8, "parts_shape auto: the k-means parts that test the domes are this many "
+                                          "relief lengths across, whatever parts is (parts_dome_cut was measured "
+                                          "there; at 1.2 the stones' domes read 0.709 and would get k-means parts)",
+                                     exclusiveMinimum=0)
+    parts_start: str = option("basins", "where the k-means parts start: cells (one per occupied cell of parts relief "
+                                        "lengths on the patch's plane) or basins (one per basin of the relief, so one "
+                                        "per dome, refined by position and colour: by the labels the procedural "
+                                        "pebbles keep 0.916 of their Gaussians in their largest part against 0.884 from "
+                                        "cells, the 1M pebbles 0.895 against 0.829, the trained pebbles 0.956 against "
+                                        "0.952)", enum=PART_STARTS)
     parts_colour: float = option(3.0, "the colour's weight in the parts' k-means (features [xyz / part size, "
                                       "parts_colour * rgb]): part borders follow colour edges such as a pebble's rim",
                                       minimum=0)
@@ -310,13 +322,14 @@ def smooth_displacements(g: torch.Tensor, nb: torch.Tensor, passes: int, up: tor
 
 
 def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour: float = 1.0,
-                max_iter: int = 10) -> torch.Tensor:
+                max_iter: int = 10, start: torch.Tensor | None = None) -> torch.Tensor:
     """style [M, 3] positions, rgb [M, 3] colours, its up (:func:`~wast3d.registration.patch_frame`), a
     part diameter ``size`` in its units -> [M] int64 part ids: k-means on ``[xyz / size, colour * rgb]``,
     started from the centroids of the occupied ``size`` x ``size`` cells of the patch's plane (so about
-    one part per cell, deterministic). The colour term puts part borders where the colour changes (a
-    pebble's rim): on the demo's trained pebbles at one relief length the median pebble has 71 % of its
-    Gaussians in one part on positions alone, 99 % with ``colour`` 1.
+    one part per cell, deterministic), or of the groups of ``start`` [M] (ids, e.g. the relief's basins:
+    one part per basin, its borders then moved to the colour edges). The colour term puts part borders
+    where the colour changes (a pebble's rim): on the demo's trained pebbles at one relief length the
+    median pebble has 71 % of its Gaussians in one part on positions alone, 99 % with ``colour`` 1.
 
     Why: each step of the flow moves every style Gaussian towards its own transport target, so the
     Gaussians of one trained pebble (many small ones, of different colours) go different ways and the
@@ -332,9 +345,14 @@ def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour:
     if not size > 0:
         raise ValueError(f"style parts: need a part size > 0, got {size}")
     x = style.detach().double().cpu().numpy()
-    c, axes = patch_frame(style, up)
-    cells = np.floor(((x - c) @ axes[:2].T) / size).astype(np.int64)
-    _, cell = np.unique(cells, axis=0, return_inverse=True)
+    if start is None:
+        c, axes = patch_frame(style, up)
+        cells = np.floor(((x - c) @ axes[:2].T) / size).astype(np.int64)
+        _, cell = np.unique(cells, axis=0, return_inverse=True)
+    else:
+        if len(start) != len(x):
+            raise ValueError(f"style parts: start has {len(start)} ids for {len(x)} Gaussians")
+        _, cell = np.unique(start.detach().cpu().numpy(), return_inverse=True)
     cell = cell.reshape(-1)
     P = int(cell.max()) + 1
     if P == 1 or P >= len(x):
@@ -388,24 +406,27 @@ def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | N
                  cfg.parts_max_aspect)
         return None
     size = cfg.parts * rel.length
+    basins = relief_basins(style.means, up, rel.length) if cfg.parts_shape != "kmeans" or cfg.parts_start == "basins" else None
     if cfg.parts_shape == "relief":
-        part = relief_basins(style.means, up, rel.length)
+        part = basins
         how = f"the relief's basins (relief length {rel.length:.4g})"
-    elif cfg.parts_shape == "kmeans":
-        part = style_parts(style.means, style.rgb, up, size, cfg.parts_colour)
-        how = f"k-means parts of {size:.4g} across"
     else:
-        kmeans, basins = style_parts(style.means, style.rgb, up, size, cfg.parts_colour), relief_basins(style.means, up, rel.length)
-        cut = dome_share(basins, kmeans)
-        if cut < cfg.parts_dome_cut:
-            part = basins
-            how = (f"the relief's basins (relief length {rel.length:.4g}): k-means parts of {size:.4g} across would "
-                   f"cut its domes (the median keeps {cut:.3g} of its Gaussians in one, under parts_dome_cut "
-                   f"{cfg.parts_dome_cut:.3g})")
-        else:
-            part = kmeans
-            how = (f"k-means parts of {size:.4g} across (the median dome keeps {cut:.3g} of its Gaussians in one, "
-                   f"parts_dome_cut {cfg.parts_dome_cut:.3g})")
+        start = basins if cfg.parts_start == "basins" else None
+        kmeans = style_parts(style.means, style.rgb, up, size, cfg.parts_colour, start=start)
+        how = f"k-means parts (position over {size:.4g}, colour x {cfg.parts_colour:.3g}) started from the {cfg.parts_start}"
+        part = kmeans
+        if cfg.parts_shape == "auto":
+            # parts of one size (cells of the probe's size) tell whether the domes are larger than a part
+            probe = cfg.parts_dome_probe * rel.length
+            cut = dome_share(basins, style_parts(style.means, style.rgb, up, probe, cfg.parts_colour))
+            if cut < cfg.parts_dome_cut:
+                part = basins
+                how = (f"the relief's basins (relief length {rel.length:.4g}): parts of {probe:.4g} across would cut "
+                       f"its domes (the median keeps {cut:.3g} of its Gaussians in one, under parts_dome_cut "
+                       f"{cfg.parts_dome_cut:.3g})")
+            else:
+                how += (f" (parts of {probe:.4g} across keep {cut:.3g} of the median dome in one, parts_dome_cut "
+                        f"{cfg.parts_dome_cut:.3g})")
     counts = torch.bincount(part)
     log.info("stylize: relief aspect %.3g <= %.3g: %d parts (median %d Gaussians) moving as one (%s): %s",
              rel.aspect, cfg.parts_max_aspect, len(counts), int(counts.median()), cfg.parts_motion, how)
