@@ -51,7 +51,7 @@ def whole(part: np.ndarray, el: np.ndarray, q: float) -> float:
 
 def main() -> None:
     from wast3d.registration import relief, relief_basins, style_up
-    from wast3d.stylize import StylizeConfig, dome_share, flow_parts, style_parts
+    from wast3d.stylize import StylizeConfig, dome_share, flow_parts, probe_parts, style_parts
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=4)
@@ -63,7 +63,7 @@ def main() -> None:
         up = style_up(s.means, "z").tolist()
         rel = relief(s.means, up=up)
         kmeans = style_parts(s.means, s.rgb, up, cfg.parts * rel.length, cfg.parts_colour)
-        probe = style_parts(s.means, s.rgb, up, cfg.parts_dome_probe * rel.length, cfg.parts_colour)
+        probe = probe_parts(s, up, rel.length, cfg)
         basins = relief_basins(s.means, up, rel.length)
         auto = flow_parts(s, up, cfg)
         row = {"family": family, "source": source, "seed": seed, "gaussians": len(s), "aspect": rel.aspect,

@@ -386,6 +386,13 @@ def dome_share(basins: torch.Tensor, part: torch.Tensor, min_size: int = 8) -> f
     return float(np.median((big[keep].double() / size[keep].double()).numpy()))
 
 
+def probe_parts(style: GaussianScene, up, length: float, cfg: StylizeConfig) -> torch.Tensor:
+    """The parts that ``parts_shape: auto`` tests the domes with ([M] ids): k-means parts of
+    ``parts_dome_probe`` relief lengths ``length``, started from cells, whatever ``parts`` and
+    ``parts_start`` are (``parts_dome_cut`` was measured on them)."""
+    return style_parts(style.means, style.rgb, up, cfg.parts_dome_probe * length, cfg.parts_colour)
+
+
 def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | None:
     """The style's parts for the flow ([M] ids, :func:`style_parts`), or None where every Gaussian moves
     freely: ``parts`` 0, a style without relief, or a steep one (relief aspect above ``parts_max_aspect``:
@@ -407,26 +414,21 @@ def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | N
         return None
     size = cfg.parts * rel.length
     basins = relief_basins(style.means, up, rel.length) if cfg.parts_shape != "kmeans" or cfg.parts_start == "basins" else None
-    if cfg.parts_shape == "relief":
+    use_basins, why = cfg.parts_shape == "relief", ""
+    if cfg.parts_shape == "auto":  # decided before any k-means parts of the flow's size are made
+        probe = cfg.parts_dome_probe * rel.length
+        cut = dome_share(basins, probe_parts(style, up, rel.length, cfg))
+        use_basins = cut < cfg.parts_dome_cut
+        why = (f"parts of {probe:.4g} across {'would cut its domes' if use_basins else 'keep its domes'} (the median "
+               f"keeps {cut:.3g} of its Gaussians in one, parts_dome_cut {cfg.parts_dome_cut:.3g})")
+    if use_basins:
         part = basins
-        how = f"the relief's basins (relief length {rel.length:.4g})"
+        how = f"the relief's basins (relief length {rel.length:.4g})" + (f": {why}" if why else "")
     else:
-        start = basins if cfg.parts_start == "basins" else None
-        kmeans = style_parts(style.means, style.rgb, up, size, cfg.parts_colour, start=start)
-        how = f"k-means parts (position over {size:.4g}, colour x {cfg.parts_colour:.3g}) started from the {cfg.parts_start}"
-        part = kmeans
-        if cfg.parts_shape == "auto":
-            # parts of one size (cells of the probe's size) tell whether the domes are larger than a part
-            probe = cfg.parts_dome_probe * rel.length
-            cut = dome_share(basins, style_parts(style.means, style.rgb, up, probe, cfg.parts_colour))
-            if cut < cfg.parts_dome_cut:
-                part = basins
-                how = (f"the relief's basins (relief length {rel.length:.4g}): parts of {probe:.4g} across would cut "
-                       f"its domes (the median keeps {cut:.3g} of its Gaussians in one, under parts_dome_cut "
-                       f"{cfg.parts_dome_cut:.3g})")
-            else:
-                how += (f" (parts of {probe:.4g} across keep {cut:.3g} of the median dome in one, parts_dome_cut "
-                        f"{cfg.parts_dome_cut:.3g})")
+        part = style_parts(style.means, style.rgb, up, size, cfg.parts_colour,
+                           start=basins if cfg.parts_start == "basins" else None)
+        how = (f"k-means parts (position over {size:.4g}, colour x {cfg.parts_colour:.3g}) started from the "
+               f"{cfg.parts_start}" + (f"; {why}" if why else ""))
     counts = torch.bincount(part)
     log.info("stylize: relief aspect %.3g <= %.3g: %d parts (median %d Gaussians) moving as one (%s): %s",
              rel.aspect, cfg.parts_max_aspect, len(counts), int(counts.median()), cfg.parts_motion, how)
