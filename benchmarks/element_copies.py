@@ -13,6 +13,11 @@ the RMS distance to the cluster's centre over its two widest axes) of the conten
 element length on the content (``element_length`` of the texture reference: the style's relief length
 / s0). Writes the CSV and, per pair, ``element_copies_PAIR_METHOD.png``: the result's first key view
 and its close-up with each copy in its own colour and the ground black, beside the close-up in RGB.
+
+``--thickness`` splits the completeness by the content's *local thickness* where each copy lies
+(:func:`wast3d.geometry.local_thickness`: the distance through the content along its normal) against
+the style element's diameter on the content (:func:`wast3d.elements.element_diameter` / s0): a whole
+element cannot lie where the content is thinner than it without widening the content there.
 """
 
 from __future__ import annotations
@@ -81,7 +86,7 @@ def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> 
     save_png(out, grid(tiles, len(tiles)))
 
 
-def measure(pair: str, method: str, partition: str, out_dir: Path) -> dict:
+def measure(pair: str, method: str, partition: str, out_dir: Path, thickness: bool = False) -> dict:
     from wast3d.formats import read_scene
     from wast3d.stages import artifact
 
@@ -96,25 +101,49 @@ def measure(pair: str, method: str, partition: str, out_dir: Path) -> dict:
     points = read_scene(first(Path(artifact("surface", RESULTS, scene=content)),
                               Path(artifact("scene", RESULTS, scene=content)))).means
     cl = np.load(artifact("clusters", RESULTS, **at))["labels"]
-    length = json.loads((Path(artifact("texture_reference", RESULTS, **at)) / "render.json").read_text())["element_length"]
+    reference = json.loads((Path(artifact("texture_reference", RESULTS, **at)) / "render.json").read_text())
+    # the texture reference is rendered at the reference partition's s0: rescaled to this partition's
+    s0 = json.loads(Path(artifact("registration", RESULTS, **at)).with_suffix(".json").read_text())["s0"]
+    length = reference["element_length"] * reference["s0"] / s0
     span = cluster_span(points.double().numpy(), cl) / length
     result = read_scene(artifact("final", RESULTS, **at))
     copy_picture(result, st["labels"], Path(artifact("render_pair", RESULTS, **at)) / "render.json",
                  out_dir / f"element_copies_{pair}_{method}.png")
-    return {"pair": pair, "method": method, "clusters": len(span), "cluster_span_median": float(np.median(span)),
-            "complete_median": float(np.median(comp)), "complete_0.5": float((comp >= 0.5).mean()),
-            "complete_0.8": float((comp >= 0.8).mean())}
+    row = {"pair": pair, "method": method, "clusters": len(span), "cluster_span_median": float(np.median(span)),
+           "complete_median": float(np.median(comp)), "complete_0.5": float((comp >= 0.5).mean()),
+           "complete_0.8": float((comp >= 0.8).mean())}
+    if thickness:
+        from wast3d.elements import element_diameter
+        from wast3d.geometry import kdtree, local_thickness
+
+        x = points.double().numpy()
+        diameter = element_diameter(s.means, s.element) / s0
+        on = np.flatnonzero(s.element.numpy()[selected] > 0)  # the result's element Gaussians, as comp
+        pick = np.sort(np.random.default_rng(0).choice(on, min(4000, len(on)), replace=False))
+        near = kdtree(x).query(result.means.detach().double().numpy()[pick])[1]
+        thick = local_thickness(x, x[near])
+        thin = thick < diameter
+        c = comp[np.searchsorted(on, pick)]
+        row.update({"element_diameter": diameter, "thin_share": float(thin.mean()),
+                    "thickness_median_thin": float(np.median(thick[thin])) if thin.any() else float("nan"),
+                    "complete_median_thin": float(np.median(c[thin])) if thin.any() else float("nan"),
+                    "complete_median_thick": float(np.median(c[~thin])) if (~thin).any() else float("nan"),
+                    "complete_0.5_thin": float((c[thin] >= 0.5).mean()) if thin.any() else float("nan"),
+                    "complete_0.5_thick": float((c[~thin] >= 0.5).mean()) if (~thin).any() else float("nan")})
+    return row
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("pairs", nargs="+", help="PAIR[:METHOD[:PARTITION]], e.g. guitar__stones_s20:default_c2:c2")
     ap.add_argument("--out", type=Path, default=OUT / "element_copies.csv")
+    ap.add_argument("--thickness", action="store_true", help="split the completeness by the content's local "
+                    "thickness against the element's diameter (slower: a ray per sampled copy Gaussian)")
     a = ap.parse_args()
     rows = []
     for item in a.pairs:
         pair, method, partition = (item.split(":") + ["default", "default"])[:3]
-        rows.append(measure(pair, method, partition, a.out.parent))
+        rows.append(measure(pair, method, partition, a.out.parent, a.thickness))
         print(" ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in rows[-1].items()), flush=True)
     write_rows(rows, a.out)
 

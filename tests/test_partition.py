@@ -8,7 +8,7 @@ import torch
 
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
-from wast3d.geometry import _flushing_denormals, frame_from_normal, group_diameters, kdtree, knn
+from wast3d.geometry import _flushing_denormals, frame_from_normal, group_diameters, kdtree, knn, local_thickness
 from wast3d.registration import (Registration, RegistrationConfig, base_scale, element_size_factors, element_size_report,
                                  random_rotation, register, relief, relief_length)
 from wast3d.selection import SelectConfig, select, select_footprint, select_with, thin
@@ -1195,3 +1195,22 @@ def test_landings_cover_the_style_by_area_not_by_density():
     assert float((lc[:, 1, 0] < 0).double().mean()) > 0.8  # random Gaussians: by density
     with pytest.raises(ValueError, match="landing must be one of"):
         landing_points(style, up, 2, 1, g, "middle")
+
+
+def test_local_thickness_is_a_tubes_diameter_and_inf_on_an_open_sheet():
+    """Through a tube of radius r the thickness is 2 r (a leg); a flat sheet has no far side (inf). A
+    tube with a cap-free axis and a sheet sampled at about 0.01."""
+    rng = np.random.default_rng(0)
+    r = 0.05
+    a = rng.uniform(0, 2 * np.pi, 30000)
+    z = rng.uniform(-0.5, 0.5, 30000)
+    tube = np.stack([r * np.cos(a), r * np.sin(a), z], 1)
+    mid = tube[np.abs(tube[:, 2]) < 0.3][:200]
+    t = local_thickness(tube, mid)
+    assert np.isfinite(t).mean() > 0.97  # a random sample leaves the odd gap on the far side
+    t = t[np.isfinite(t)]
+    assert abs(np.median(t) - 2 * r) < 0.1 * r, np.median(t)
+    fat = local_thickness(tube * np.array([4.0, 4.0, 1.0]), mid * np.array([4.0, 4.0, 1.0]))
+    assert np.median(fat[np.isfinite(fat)]) > 3 * np.median(t)
+    sheet = np.concatenate([rng.uniform(-0.5, 0.5, (20000, 2)), np.zeros((20000, 1))], 1)
+    assert np.isinf(local_thickness(sheet, sheet[:50])).all()

@@ -173,3 +173,25 @@ def group_diameters(labels: np.ndarray, points: np.ndarray) -> np.ndarray:
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], np.arange(K + 1))
     return np.array([2 * np.quantile(d[order[a:b]], 0.9) if b > a else 0.0 for a, b in zip(bounds[:-1], bounds[1:])])
+
+
+def local_thickness(points: np.ndarray, at: np.ndarray, k: int = 16, reach: float = 0.4) -> np.ndarray:
+    """The thickness of a surface sample at query points: points [M, 3] (dense, about uniform), at [Q, 3]
+    -> [Q]. Along each query's local PCA normal (:func:`local_normals`, ``k`` neighbours), either way,
+    the distance to the nearest sample within 3 h of that line and farther than 3 h (h: the samples'
+    median nearest-neighbour distance): through a leg, its diameter. inf where no sample lies on the
+    line within ``reach`` of the sample's diameter (an open sheet). Measured, not used by a stage: where
+    the content is thinner than a style element, a whole element widens it (docs/measurements.md,
+    session 37)."""
+    tree = kdtree(points)
+    h = float(np.median(tree.query(points, 2)[0][:, 1]))
+    normals = local_normals(torch.from_numpy(points), torch.from_numpy(at), k).numpy()
+    diameter = float(np.linalg.norm(np.percentile(points, 99, 0) - np.percentile(points, 1, 0)))
+    out = np.full(len(at), np.inf)
+    for i, near in enumerate(tree.query_ball_point(at, reach * diameter)):
+        v = points[near] - at[i]
+        t = v @ normals[i]
+        hit = (np.abs(t) > 3 * h) & (np.linalg.norm(v - t[:, None] * normals[i], axis=1) < 3 * h)
+        if hit.any():
+            out[i] = np.abs(t[hit]).min()
+    return out
