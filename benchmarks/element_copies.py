@@ -18,6 +18,10 @@ and its close-up with each copy in its own colour and the ground black, beside t
 (:func:`wast3d.geometry.local_thickness`: the distance through the content along its normal) against
 the style element's diameter on the content (:func:`wast3d.elements.element_diameter` / s0): a whole
 element cannot lie where the content is thinner than it without widening the content there.
+
+``--copies N`` writes ``element_copies_PAIR_METHOD_copies.png``: N clusters (drawn with seed 0), each
+as its Gaussians on the result beside the same Gaussians in the style, the two cameras related by the
+cluster's registration map (eq. 7), so that a copy that keeps what its style region shows looks the same.
 """
 
 from __future__ import annotations
@@ -86,7 +90,51 @@ def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> 
     save_png(out, grid(tiles, len(tiles)))
 
 
-def measure(pair: str, method: str, partition: str, out_dir: Path, thickness: bool = False) -> dict:
+def copy_sheet(result, style, clusters: np.ndarray, selected: np.ndarray, registration: Path, n: int,
+               out: Path, size: int = 256) -> None:
+    """Cluster k's result Gaussians seen along its outward normal from 4 radii away, beside the style
+    Gaussians it selected seen from the camera the registration maps that one onto (y = S R (x - mu) + p)."""
+    from PIL import Image
+
+    from wast3d.cameras import Camera, look_at
+    from wast3d.rasterizer import rasterize
+
+    reg = np.load(registration)
+    R, S, mu, p, up = reg["R"], reg["s"], reg["mu"], reg["p"], reg["style_up"]
+    ks = np.random.default_rng(0).choice(np.unique(clusters), min(n, len(np.unique(clusters))), replace=False)
+    rows = []
+    for k in ks:
+        mine = np.flatnonzero(clusters == k)
+        x = result.means.detach().double().numpy()[mine]
+        centre = x.mean(0)
+        radius = float(np.percentile(np.linalg.norm(x - centre, axis=1), 90)) + 1e-9
+        normal = R[k].T @ (up / S[k])  # the style's up pulled back to the content
+        normal /= np.linalg.norm(normal)
+        side = np.cross(normal, [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [0.0, 1.0, 0.0])
+        eye = centre + 4 * radius * normal
+        up_c = np.cross(side, normal)
+
+        def to_style(v):
+            return S[k] * (R[k] @ (v - mu[k])) + p[k]
+
+        f = size / 2 * 4 / 1.2  # the cluster's 90 % radius at 1 / 1.2 of the half frame
+        # in the style, the same radius in the plane at the mapped distance: the same framing
+        r_s = np.linalg.norm(to_style(centre + radius * side) - to_style(centre))
+        d_s = np.linalg.norm(to_style(eye) - to_style(centre))
+        tiles = []
+        for scene, e, c, u, fx in ((result.subset(torch.from_numpy(mine)), eye, centre, up_c, f),
+                                   (style.subset(torch.from_numpy(selected[mine])), to_style(eye), to_style(centre),
+                                    S[k] * (R[k] @ up_c), f * d_s / (4 * r_s))):
+            cam = Camera(look_at(e.tolist(), c.tolist(), u.tolist()), fx, fx, size / 2, size / 2, size, size)
+            tiles.append(rasterize(scene, cam, background=(1.0, 1.0, 1.0)).rgb.clamp(0, 1).numpy())
+        rows.append(np.concatenate(tiles, 1))
+    half = (len(rows) + 1) // 2
+    rows += [np.ones_like(rows[0])] * (2 * half - len(rows))
+    img = np.concatenate([np.concatenate(rows[:half], 0), np.concatenate(rows[half:], 0)], 1)
+    Image.fromarray((img * 255).astype(np.uint8)).save(out)
+
+
+def measure(pair: str, method: str, partition: str, out_dir: Path, thickness: bool = False, copies: int = 0) -> dict:
     from wast3d.formats import read_scene
     from wast3d.stages import artifact
 
@@ -107,6 +155,9 @@ def measure(pair: str, method: str, partition: str, out_dir: Path, thickness: bo
     length = reference["element_length"] * reference["s0"] / s0
     span = cluster_span(points.double().numpy(), cl) / length
     result = read_scene(artifact("final", RESULTS, **at))
+    if copies:
+        copy_sheet(result, s, st["labels"], selected, Path(artifact("registration", RESULTS, **at)), copies,
+                   out_dir / f"element_copies_{pair}_{method}_copies.png")
     copy_picture(result, st["labels"], Path(artifact("render_pair", RESULTS, **at)) / "render.json",
                  out_dir / f"element_copies_{pair}_{method}.png")
     row = {"pair": pair, "method": method, "clusters": len(span), "cluster_span_median": float(np.median(span)),
@@ -139,11 +190,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=OUT / "element_copies.csv")
     ap.add_argument("--thickness", action="store_true", help="split the completeness by the content's local "
                     "thickness against the element's diameter (slower: a ray per sampled copy Gaussian)")
+    ap.add_argument("--copies", type=int, default=0, help="a sheet of this many clusters' copies beside the same "
+                    "Gaussians in the style")
     a = ap.parse_args()
     rows = []
     for item in a.pairs:
         pair, method, partition = (item.split(":") + ["default", "default"])[:3]
-        rows.append(measure(pair, method, partition, a.out.parent, a.thickness))
+        rows.append(measure(pair, method, partition, a.out.parent, a.thickness, a.copies))
         print(" ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in rows[-1].items()), flush=True)
     write_rows(rows, a.out)
 

@@ -21,9 +21,9 @@ Method: multi-start anisotropic ICP, batched over all clusters x starts at once.
   floaters) half as large as the procedural pebbles' (30k) on the same ant, and those of its cleaned
   copy (9k) 1.7x larger. ``scale`` sets s0 explicitly. Eq. 7's per-axis scale still moves within
   ``scale_range`` of s0, so the elements come out at :func:`element_size_factors` times the asked size
-  (a median 1.03-1.2x on the project's pairs; 1.32x on the trained weave, whose sparse strands pull the
-  map to the bound, and 1.36x on the fruit capture); ``registration.json`` reports it and the log warns
-  beyond 1.2x.
+  (a median 1.03-1.2x on the project's pairs, the trained weave 1.19x; 1.36x on it when it was pretrained
+  to 1,500 steps, its strands sparse clumps that pulled the map to the bound, and on the fruit capture);
+  ``registration.json`` reports it and the log warns beyond 1.2x.
 - ICP converges slowly and then snaps: from 29 degrees off, 30 rounds left 1.7 spacings of residual
   and 100 rounds reached 1e-11 on a test patch, hence the round counts.
 - Starts, ``landings x yaws`` per cluster: landing points (:func:`landing_points`: by default drawn
