@@ -10,8 +10,8 @@ on four patches of the procedural pebbles and stones (seeds 0..N-1, 30k and 8k G
 cleaned trained copies the workflow made (``results/scenes/{pebbles,stones}{_trained,_s05,_s20,_s40}/
 style.ply``, where present: config/min_seen.yaml), with what the labels say of each cut: the median
 element's share of its Gaussians in one part (``whole``) and the lowest quarter's, for the k-means
-parts (of ``parts`` and of the probe's size), the basins and the one auto chose. Prints the range per style family and the gap the threshold
-must sit in.
+parts (of ``parts`` and of the probe's size), the basins and the one auto chose. Prints the range per
+style family and the gap the threshold must sit in.
 """
 
 from __future__ import annotations

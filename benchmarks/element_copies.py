@@ -90,6 +90,11 @@ def copy_picture(result, clusters: np.ndarray, render_json: Path, out: Path) -> 
     save_png(out, grid(tiles, len(tiles)))
 
 
+def _or_nan(f, v: np.ndarray) -> float:
+    """f(v) as a float, nan for an empty v."""
+    return float(f(v)) if len(v) else float("nan")
+
+
 def copy_sheet(result, style, clusters: np.ndarray, selected: np.ndarray, registration: Path, n: int,
                out: Path, size: int = 256) -> None:
     """Cluster k's result Gaussians seen along its outward normal from 4 radii away, beside the style
@@ -101,7 +106,8 @@ def copy_sheet(result, style, clusters: np.ndarray, selected: np.ndarray, regist
 
     reg = np.load(registration)
     R, S, mu, p, up = reg["R"], reg["s"], reg["mu"], reg["p"], reg["style_up"]
-    ks = np.random.default_rng(0).choice(np.unique(clusters), min(n, len(np.unique(clusters))), replace=False)
+    ids = np.unique(clusters)
+    ks = np.random.default_rng(0).choice(ids, min(n, len(ids)), replace=False)
     rows = []
     for k in ks:
         mine = np.flatnonzero(clusters == k)
@@ -176,11 +182,10 @@ def measure(pair: str, method: str, partition: str, out_dir: Path, thickness: bo
         thin = thick < diameter
         c = comp[np.searchsorted(on, pick)]
         row.update({"element_diameter": diameter, "thin_share": float(thin.mean()),
-                    "thickness_median_thin": float(np.median(thick[thin])) if thin.any() else float("nan"),
-                    "complete_median_thin": float(np.median(c[thin])) if thin.any() else float("nan"),
-                    "complete_median_thick": float(np.median(c[~thin])) if (~thin).any() else float("nan"),
-                    "complete_0.5_thin": float((c[thin] >= 0.5).mean()) if thin.any() else float("nan"),
-                    "complete_0.5_thick": float((c[~thin] >= 0.5).mean()) if (~thin).any() else float("nan")})
+                    "thickness_median_thin": _or_nan(np.median, thick[thin])})
+        for side, at in (("thin", thin), ("thick", ~thin)):
+            row[f"complete_median_{side}"] = _or_nan(np.median, c[at])
+            row[f"complete_0.5_{side}"] = _or_nan(np.mean, c[at] >= 0.5)
     return row
 
 
