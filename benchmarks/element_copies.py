@@ -183,9 +183,9 @@ def measure(pair: str, method: str, partition: str, out_dir: Path, thickness: bo
         c = comp[np.searchsorted(on, pick)]
         row.update({"element_diameter": diameter, "thin_share": float(thin.mean()),
                     "thickness_median_thin": _or_nan(np.median, thick[thin])})
-        for side, at in (("thin", thin), ("thick", ~thin)):
-            row[f"complete_median_{side}"] = _or_nan(np.median, c[at])
-            row[f"complete_0.5_{side}"] = _or_nan(np.mean, c[at] >= 0.5)
+        for name, f in (("median", lambda v: _or_nan(np.median, v)), ("0.5", lambda v: _or_nan(np.mean, v >= 0.5))):
+            for side, at in (("thin", thin), ("thick", ~thin)):
+                row[f"complete_{name}_{side}"] = f(c[at])
     return row
 
 
