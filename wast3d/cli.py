@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shlex
 import sys
 from pathlib import Path
 
@@ -103,47 +104,87 @@ def cmd_view(sub):
 
 @command("run", "stylize CONTENT with STYLE through the workflow: writes OUT/config/config.yaml and runs Snakemake in OUT")
 def cmd_run(sub):
-    sub.add_argument("content", type=Path, help="PLY (reference, compressed or point cloud) or Blender folder")
-    sub.add_argument("style", type=Path, help="PLY or Blender folder")
+    sub.add_argument("content", type=Path, help="PLY (reference, compressed or point cloud), .spz, .splat or Blender folder")
+    sub.add_argument("style", type=Path, help="the same kinds of scene")
     sub.add_argument("out", type=Path, help="working folder: config/ and results/ go here (re-runs reuse its cache)")
     sub.add_argument("--profile", default=None, help="Snakemake profile (default: the workflow's profiles/local)")
-    sub.add_argument("-n", "--dry-run", action="store_true", help="only show what would run")
+    sub.add_argument("-n", "--dry-run", action="store_true",
+                     help="only show what would run; writes nothing (not even the config)")
+    sub.add_argument("--reset-config", action="store_true",
+                     help="rewrite OUT/config/config.yaml from the defaults even if you edited it (yours is kept as "
+                          "config.yaml.bak)")
     sub.add_argument("snakemake_args", nargs="*", help="more Snakemake arguments, after --")
 
     def run(a):
+        import contextlib
         import subprocess
 
         import yaml
 
         from .io_utils import atomic_path
-        from .quickstart import two_scene_config, workflow_root
+        from .quickstart import backup_path, config_text, plan_config, two_scene_config, workflow_root
 
+        if a.out.exists() and not a.out.is_dir():
+            raise ValueError(f"{a.out}: OUT must be a folder (it is a file)")
         root = workflow_root()
         base = yaml.safe_load((root / "config" / "config.yaml").read_text())
         cfg = two_scene_config(base, a.content, a.style)
         cfg_path = a.out / "config" / "config.yaml"
-        cfg_path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(cfg_path) as tmp:
-            Path(tmp).write_text("# written by `wast3d run`; edit and re-run Snakemake in this folder\n"
-                                 + yaml.safe_dump(cfg, sort_keys=False))
-        (c, s), = cfg["pairs"]
-        log.info("run: %s x %s: config in %s", c, s, cfg_path)
-        cmd = [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", str(a.out),
-               "--profile", a.profile or str(root / "workflow" / "profiles" / "local"),
-               *(["-n"] if a.dry_run else []), *a.snakemake_args]
-        log.info("run: %s", " ".join(cmd))
-        rc = subprocess.run(cmd).returncode
-        if rc == 0 and not a.dry_run:
+        plan = plan_config(cfg_path, cfg, a.content, a.style)
+        if a.reset_config and plan.text != (cfg_text := config_text(cfg)):
+            plan = type(plan)("write", cfg_text, "reset to the defaults")
+        pair = next(iter(yaml.safe_load(plan.text).get("pairs") or [[None, None]]))
+        with contextlib.ExitStack() as stack:
+            if a.dry_run:
+                workdir = dry_run_folder(a.out, plan.text, stack)
+                log.info("run: dry run: nothing is written in %s (config: %s, %s)", a.out, cfg_path, plan.why)
+            else:
+                workdir = a.out
+                if plan.action == "write":
+                    if cfg_path.exists() and a.reset_config:
+                        bak = backup_path(cfg_path)
+                        cfg_path.rename(bak)
+                        log.warning("run: your config is kept as %s", bak)
+                    with atomic_path(cfg_path) as tmp:
+                        Path(tmp).write_text(plan.text)
+                log.info("run: %s x %s: config %s (%s)", *pair, cfg_path, plan.why)
+            cmd = [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", str(workdir),
+                   "--profile", a.profile or str(root / "workflow" / "profiles" / "local"),
+                   *(["-n", "--nolock"] if a.dry_run else []), *a.snakemake_args]
+            log.info("run: %s", " ".join(shlex.quote(c) for c in cmd))
+            rc = subprocess.run(cmd).returncode
+        if rc == 0 and not a.dry_run and None not in pair:
             from .stages import artifact
 
+            c, s = pair
             res = a.out / "results"
             final = artifact("final", res, content=c, style=s, experiment="default")
             log.info("run: done. Result: %s; renders: %s; Table 1: %s; view: wast3d view %s %s %s", final,
                      Path(artifact("render_pair", res, content=c, style=s, method="default")).parent,
-                     res / "tables" / "table1.md", a.content, a.style, final)
+                     res / "tables" / "table1.md", *(shlex.quote(str(p)) for p in (a.content, a.style, final)))
         return rc
 
     return run
+
+
+def dry_run_folder(out: Path, config_text: str, stack) -> Path:
+    """A temporary working folder for a dry run that writes nothing in ``out``: the config to run with in
+    its config/, every other entry of ``out`` linked in (results/ above all), and of Snakemake's state in
+    ``out`` only what it reads (the metadata and the incomplete markers: why a job would re-run)."""
+    import tempfile
+
+    tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="wast3d-dry-run-")))
+    (tmp / "config").mkdir()
+    (tmp / "config" / "config.yaml").write_text(config_text)
+    if out.is_dir():
+        for entry in out.iterdir():
+            if entry.name not in ("config", ".snakemake"):
+                (tmp / entry.name).symlink_to(entry.resolve())
+        for d in ("metadata", "incomplete"):
+            if (out / ".snakemake" / d).is_dir():
+                (tmp / ".snakemake").mkdir(exist_ok=True)
+                (tmp / ".snakemake" / d).symlink_to((out / ".snakemake" / d).resolve())
+    return tmp
 
 
 # ---- scenes ----------------------------------------------------------------------------------
@@ -374,7 +415,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # what follows `--` is Snakemake's (`wast3d run C S OUT -n -- TARGET`), wherever the options stand
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    parser = build_parser()
+    args = parser.parse_args(argv[:len(argv) - len(extra) - 1] if "--" in argv else argv)
+    if extra:
+        if not hasattr(args, "snakemake_args"):
+            parser.error(f"{args.cmd} takes no arguments after --")
+        args.snakemake_args = [*args.snakemake_args, *extra]
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     import torch

@@ -11,7 +11,9 @@ reuses every cached stage.
 from __future__ import annotations
 
 import copy
+import hashlib
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 TABLE1_METHODS = ("default", "colour_ot", "selected", "input")  # labelled as the project's config labels them
@@ -84,3 +86,81 @@ def two_scene_config(base: dict, content: Path, style: Path) -> dict:
     used = {v.get("partition", "default") for v in cfg["experiments"].values()}
     cfg["partitions"] = {k: v for k, v in cfg.get("partitions", {}).items() if k in used}
     return cfg
+
+
+# ---- the config file in OUT: written from the defaults, a user's edits never overwritten ----------------
+
+MARK = "# written by `wast3d run` from the project's defaults"
+
+
+def config_text(cfg: dict) -> str:
+    """The text of ``OUT/config/config.yaml``: a first line with the digest of the rest, so that a later
+    run can tell a file it wrote and nobody touched (safe to rewrite) from one a user edited."""
+    import yaml
+
+    body = yaml.safe_dump(cfg, sort_keys=False)
+    return f"{MARK} (digest {_digest(body)}); edit it and run again: your edits are kept\n" + body
+
+
+def _digest(body: str) -> str:
+    return hashlib.sha256(body.encode()).hexdigest()[:16]
+
+
+def written_unchanged(text: str) -> bool:
+    """Whether ``text`` is a config :func:`config_text` wrote that nobody edited since."""
+    first, _, body = text.partition("\n")
+    m = re.fullmatch(re.escape(MARK) + r" \(digest ([0-9a-f]{16})\).*", first)
+    return bool(m) and m.group(1) == _digest(body)
+
+
+@dataclass(frozen=True)
+class ConfigPlan:
+    """What ``wast3d run`` does with ``OUT/config/config.yaml``: ``write`` the defaults' ``text`` (no file
+    yet, or one it wrote unchanged whose defaults moved on), or ``keep`` the file there (``why``)."""
+
+    action: str  # "write" | "keep"
+    text: str  # the config the workflow runs with
+    why: str
+
+
+def plan_config(path: Path, cfg: dict, content: Path, style: Path) -> ConfigPlan:
+    """Decide about the config file ``path`` for a run of ``content`` x ``style`` whose defaults are
+    ``cfg``. A file a user edited (or wrote) is kept when it names both scenes, and refused otherwise:
+    a ValueError says how to start over. Never writes."""
+    new = config_text(cfg)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder, not the config file")
+    if not path.exists():
+        return ConfigPlan("write", new, "new")
+    try:
+        old = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: cannot read the config ({e})") from None
+    if old == new:
+        return ConfigPlan("keep", old, "as written")
+    if written_unchanged(old):
+        return ConfigPlan("write", new, "unedited, rewritten from today's defaults")
+    import yaml
+
+    try:
+        mine = yaml.safe_load(old)
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path}: edited, and not valid YAML ({str(e).splitlines()[0]}); fix it, or start over from "
+                         "the defaults with --reset-config (your file is kept beside it as a .bak)") from None
+    paths = {str(Path(v["path"]).resolve()) for v in ((mine or {}).get("scenes") or {}).values()
+             if isinstance(v, dict) and v.get("path")} if isinstance(mine, dict) else set()
+    missing = [str(p) for p in (Path(content).resolve(), Path(style).resolve()) if str(p) not in paths]
+    if missing:
+        raise ValueError(f"{path}: edited by hand, and its scenes do not include {' and '.join(missing)}; run its "
+                         "workflow with snakemake in that folder, or start over from the defaults with "
+                         "--reset-config (your file is kept beside it as a .bak)")
+    return ConfigPlan("keep", old, "edited by hand: your edits are kept")
+
+
+def backup_path(path: Path) -> Path:
+    """``config.yaml.bak`` beside ``path``, or ``config.yaml.bak2``, ... : a name not taken."""
+    k, out = 1, path.with_name(path.name + ".bak")
+    while out.exists():
+        k += 1
+        out = path.with_name(f"{path.name}.bak{k}")
+    return out

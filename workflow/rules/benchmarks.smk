@@ -7,7 +7,7 @@ rule sinkhorn_error_vs_time:
         png=report(f"{RESULTS}/benchmarks/sinkhorn_error_vs_time.png",
                    caption="../report/error_vs_time.rst", category="Benchmarks"),
     params:
-        exe=sys.executable,
+        exe=PYTHON,
         script=f"{workflow.basedir}/benchmarks/sinkhorn_error_vs_time.py",
         sizes=" ".join(str(s) for s in config.get("benchmarks", {}).get("sinkhorn_sizes", [256, 512, 1024, 2048, 4096, 8192])),
     conda:
@@ -17,8 +17,8 @@ rule sinkhorn_error_vs_time:
     benchmark:
         f"{RESULTS}/benchmarks/rules/sinkhorn_error_vs_time.tsv"
     shell:
-        "{params.exe} {params.script} --sizes {params.sizes} "
-        "--out {output.csv} > {log} 2>&1"
+        "{params.exe} {params.script:q} --sizes {params.sizes} "
+        "--out {output.csv:q} > {log:q} 2>&1"
 
 
 rule metrics_validation:
@@ -27,7 +27,7 @@ rule metrics_validation:
         png=report(f"{RESULTS}/benchmarks/metrics_validation.png",
                    caption="../report/metrics_validation.rst", category="Benchmarks"),
     params:
-        exe=sys.executable,
+        exe=PYTHON,
         script=f"{workflow.basedir}/benchmarks/metrics_validation.py",
     conda:
         "../envs/wast3d.yaml"
@@ -36,7 +36,7 @@ rule metrics_validation:
     benchmark:
         f"{RESULTS}/benchmarks/rules/metrics_validation.tsv"
     shell:
-        "{params.exe} {params.script} --seeds 5 --out {output.csv} > {log} 2>&1"
+        "{params.exe} {params.script:q} --seeds 5 --out {output.csv:q} > {log:q} 2>&1"
 
 
 # every variant on ant x pebbles, the previous and the new default and the references on the others
@@ -47,7 +47,7 @@ rule style_tradeoff:
         png=report(f"{RESULTS}/benchmarks/style_tradeoff.png",
                    caption="../report/style_tradeoff.rst", category="Benchmarks"),
     params:
-        exe=sys.executable,
+        exe=PYTHON,
         script=f"{workflow.basedir}/benchmarks/style_tradeoff.py",
     conda:
         "../envs/wast3d.yaml"
@@ -56,9 +56,9 @@ rule style_tradeoff:
     benchmark:
         f"{RESULTS}/benchmarks/rules/style_tradeoff.tsv"
     shell:
-        "({params.exe} {params.script} --pairs ant:pebbles --out {output.csv} && "
-        "{params.exe} {params.script} --pairs ant:grass ant:wicker ant:stones --variants base "
-        "footprint_r1.5_flow_gamma_0.3_steps_30_lr_0.2 collage input --out {output.csv}) > {log} 2>&1"
+        "({params.exe} {params.script:q} --pairs ant:pebbles --out {output.csv:q} && "
+        "{params.exe} {params.script:q} --pairs ant:grass ant:wicker ant:stones --variants base "
+        "footprint_r1.5_flow_gamma_0.3_steps_30_lr_0.2 collage input --out {output.csv:q}) > {log:q} 2>&1"
 
 
 rule benchmarks:

@@ -30,8 +30,10 @@ def uses_conda() -> bool:
 
 
 # the interpreter running Snakemake runs the stages too (no PATH set-up needed, same on cluster nodes);
-# with `--sdm conda`, the `python` of the rule's environment (workflow/envs/wast3d.yaml)
-WAST3D = "python -m wast3d" if uses_conda() else f"{sys.executable} -m wast3d"
+# with `--sdm conda`, the `python` of the rule's environment (workflow/envs/wast3d.yaml). Shell-quoted,
+# as is every path in the rules' commands (`{input:q}`): a folder name never splits or runs a command.
+PYTHON = "python" if uses_conda() else shlex.quote(sys.executable)
+WAST3D = f"{PYTHON} -m wast3d"
 # Threads: each job passes its `threads` to the command (`wast3d --threads N`: torch, the native
 # kernels and the KD-trees use exactly N, and OpenMP threads sleep when idle), so jobs that share a
 # machine never oversubscribe it. The two stages that dominate the run time (Sinkhorn, pretraining)
@@ -291,6 +293,11 @@ def partition_of(w):
 
 def summary_runs(experiments):
     return [f"{c}__{s}/{e}" for c, s in PAIRS for e in experiments]
+
+
+def quoted(words):
+    """Words as one shell-quoted string, for a params value spliced into a command."""
+    return " ".join(shlex.quote(str(w)) for w in words)
 
 
 def pretrain_params(scene):

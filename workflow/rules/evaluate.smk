@@ -21,7 +21,7 @@ rule render_method:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log:q}"
 
 
 rule render_scene:
@@ -40,7 +40,7 @@ rule render_scene:
     benchmark:
         f"{RESULTS}/benchmarks/rules/render_scene_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log:q}"
 
 
 rule texture_reference:
@@ -61,7 +61,7 @@ rule texture_reference:
     benchmark:
         f"{RESULTS}/benchmarks/rules/texture_reference_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log:q}"
 
 
 rule colour_transfer:
@@ -82,7 +82,7 @@ rule colour_transfer:
     benchmark:
         results("rule_benchmark", rule="colour_transfer", job="{content}__{style}")
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule evaluate:
@@ -109,7 +109,7 @@ rule evaluate:
     benchmark:
         f"{RESULTS}/benchmarks/rules/evaluate_{{content}}__{{style}}_{{method}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule comparison_sheet:
@@ -130,7 +130,7 @@ rule comparison_sheet:
     benchmark:
         f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} compare {output} {params.columns} 2> {log}"
+        "{params.exe} --threads {threads} compare {output:q} {params.columns} 2> {log:q}"
 
 
 rule turntable_page:
@@ -151,7 +151,7 @@ rule turntable_page:
     benchmark:
         f"{RESULTS}/benchmarks/rules/turntables_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} turntables {output} {params.columns} 2> {log}"
+        "{params.exe} --threads {threads} turntables {output:q} {params.columns} 2> {log:q}"
 
 
 rule table1:
@@ -172,4 +172,4 @@ rule table1:
     benchmark:
         f"{RESULTS}/benchmarks/rules/table_table1.tsv"
     shell:
-        "{params.exe} --threads {threads} table1 {params.results} {output.csv} --md {output.md} --html {output.html} --row {params.rows} > {log} 2>&1"
+        "{params.exe} --threads {threads} table1 {params.results:q} {output.csv:q} --md {output.md:q} --html {output.html:q} --row {params.rows} > {log:q} 2>&1"

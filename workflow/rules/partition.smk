@@ -20,7 +20,7 @@ rule surface:
     benchmark:
         f"{RESULTS}/benchmarks/rules/surface_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule style_clean:
@@ -43,7 +43,7 @@ rule style_clean:
     benchmark:
         f"{RESULTS}/benchmarks/rules/style_clean_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule cluster:
@@ -65,7 +65,7 @@ rule cluster:
     benchmark:
         f"{RESULTS}/benchmarks/rules/cluster_{{content}}_{{partition}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule register:
@@ -89,7 +89,7 @@ rule register:
     benchmark:
         results("rule_benchmark", rule="register", job="{content}__{style}_{partition}")
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule select:
@@ -112,4 +112,4 @@ rule select:
     benchmark:
         results("rule_benchmark", rule="select", job="{content}__{style}_{partition}")
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"

@@ -27,4 +27,4 @@ rule pretrain:
     benchmark:
         f"{RESULTS}/benchmarks/rules/pretrain_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --no-progress --params '{params.cfg}' 2> {log:q}"

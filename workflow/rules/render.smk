@@ -18,7 +18,7 @@ rule result_preview:
     benchmark:
         f"{RESULTS}/benchmarks/rules/preview_{{content}}__{{style}}_{{experiment}}.tsv"
     shell:
-        "{params.exe} --threads {threads} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} --threads {threads} preview {input.ply:q} {output.png:q} --views {params.views:q} --size {params.size:q} 2> {log:q}"
 
 
 rule summary:
@@ -33,7 +33,7 @@ rule summary:
     params:
         exe=WAST3D,
         results=lambda w, output: os.path.dirname(os.path.dirname(output.csv)),
-        runs=lambda w: " ".join(summary_runs(table_experiments(w.table))),
+        runs=lambda w: quoted(summary_runs(table_experiments(w.table))),
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -41,4 +41,4 @@ rule summary:
     benchmark:
         f"{RESULTS}/benchmarks/rules/table_{{table}}.tsv"
     shell:
-        "{params.exe} --threads {threads} summarize {params.results} {output.csv} --md {output.md} --html {output.html} --run {params.runs} > {log} 2>&1"
+        "{params.exe} --threads {threads} summarize {params.results:q} {output.csv:q} --md {output.md:q} --html {output.html:q} --run {params.runs} > {log:q} 2>&1"

@@ -19,7 +19,7 @@ rule procedural_scene:
     benchmark:
         f"{RESULTS}/benchmarks/rules/scene_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} scene {params.kind} {params.name} {output.ply} --n {params.n} --seed {params.seed} 2> {log}"
+        "{params.exe} --threads {threads} scene {params.kind:q} {params.name:q} {output.ply:q} --n {params.n:q} --seed {params.seed:q} 2> {log:q}"
 
 
 rule import_ply:
@@ -39,7 +39,7 @@ rule import_ply:
     benchmark:
         f"{RESULTS}/benchmarks/rules/import_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} import-ply {input} {output.ply} {params.drop} 2> {log}"
+        "{params.exe} --threads {threads} import-ply {input:q} {output.ply:q} {params.drop} 2> {log:q}"
 
 
 rule preview:
@@ -58,7 +58,7 @@ rule preview:
     benchmark:
         f"{RESULTS}/benchmarks/rules/preview_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} preview {input.ply} {output.png} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} --threads {threads} preview {input.ply:q} {output.png:q} --views {params.views:q} --size {params.size:q} 2> {log:q}"
 
 
 rule export_views:
@@ -78,4 +78,4 @@ rule export_views:
     benchmark:
         f"{RESULTS}/benchmarks/rules/export_views_{{scene}}.tsv"
     shell:
-        "{params.exe} --threads {threads} export-views {input.ply} {params.folder} --views {params.views} --size {params.size} 2> {log}"
+        "{params.exe} --threads {threads} export-views {input.ply:q} {params.folder:q} --views {params.views:q} --size {params.size:q} 2> {log:q}"

@@ -30,7 +30,7 @@ rule sinkhorn:
     benchmark:
         results("rule_benchmark", rule="sinkhorn", job="{content}__{style}_{experiment}")
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
 rule rescale:
@@ -51,4 +51,4 @@ rule rescale:
     benchmark:
         results("rule_benchmark", rule="rescale", job="{content}__{style}_{experiment}")
     shell:
-        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log}"
+        "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
