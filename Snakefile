@@ -7,6 +7,33 @@
 """
 
 
+import importlib.util
+import os
+import sys
+
+
+def _load(name):
+    """A light module of the package (declarations, no torch) read by path, whatever else is installed:
+    the checkout's wast3d/NAME, or, in a wheel (the workflow is the data package wast3d/_workflow), the
+    package's own."""
+    paths = [os.path.join(workflow.basedir, "wast3d", name), os.path.join(workflow.basedir, "..", name)]
+    path = next((p for p in paths if os.path.isfile(p)), None)
+    if path is None:
+        raise FileNotFoundError(f"wast3d/{name} is in none of {', '.join(paths)}")
+    spec = importlib.util.spec_from_file_location(f"wast3d_{name[:-3]}", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# the config checked before anything reads it (wast3d/config_check.py): the default file bounded before
+# Snakemake merges it (YAML alias bombs), the merged config in workflow/rules/common.smk
+_CHECK = _load("config_check.py")
+if os.path.exists("config/config.yaml"):
+    _CHECK.check_yaml_file("config/config.yaml")
+
+
 configfile: "config/config.yaml"
 
 

@@ -65,7 +65,7 @@ def test_ply_and_splat_through_the_cli(tmp_path):
 
 @pytest.mark.parametrize("case, field", [
     ("truncated", "not a whole number"), ("empty", "not a whole number"), ("nan", "'position'"),
-    ("scale", "'scale'"), ("rot", "'rot'"),
+    ("scale", "'scale'"), ("rot", "'rotation'"),
 ])
 def test_bad_splat_files_name_the_file_and_the_field(tmp_path, case, field):
     rec = np.zeros(4, dtype=SPLAT_DTYPE)

@@ -93,7 +93,7 @@ def test_nan_inf(tmp_path, bad, caplog):
     p = _props(random_scene(20))
     p["scale_0"][[3, 7]] = bad
     _write_props(tmp_path / "n.ply", p)
-    with pytest.raises(PlyError, match=r"n\.ply: property 'scale_0' has 2 rows with NaN/inf"):
+    with pytest.raises(PlyError, match=r"n\.ply: field 'scale': 2 Gaussians with values that are NaN, infinite or not positive once decoded \(first at row 3\)"):
         read_ply(tmp_path / "n.ply")
     s = read_ply(tmp_path / "n.ply", drop_invalid=True)
     assert len(s) == 18 and torch.isfinite(s.log_scales).all()

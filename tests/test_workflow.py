@@ -503,3 +503,78 @@ def test_a_failing_slurm_job_fails_the_workflow_instead_of_hanging(local_slurm, 
     codes = slurm_exit_codes(ids)
     assert any(c != 0 for c in codes.values()), (ids, codes)
     assert "cut.ply: corrupt or truncated PLY" in out  # the stage's own error (its log) reaches the user
+
+
+def comparable(folder: Path) -> dict[str, object]:
+    """Every result file under ``folder``/results as what must not change between two runs of the same
+    config: the bytes; for JSON reports and the tables, all but the run's own time and memory (and the
+    work folder's path). Logs and Snakemake's per-rule timings are left out."""
+    volatile = re.compile(r"seconds|^time|_time$|_s$|peak_mem|rss|memory|^mem")
+
+    def strip(o):
+        if isinstance(o, dict):
+            return {k: strip(v) for k, v in o.items() if not volatile.search(str(k))}
+        return [strip(v) for v in o] if isinstance(o, list) else o
+
+    out = {}
+    for p in sorted((folder / "results").rglob("*")):
+        rel = p.relative_to(folder).as_posix()
+        if not p.is_file() or rel.startswith(("results/logs/", "results/benchmarks/rules/")):
+            continue
+        if p.suffix == ".json":
+            out[rel] = strip(json.loads(p.read_text().replace(str(folder), "OUT")))
+        elif p.suffix == ".csv" and "tables" in p.parts:
+            df = pd.read_csv(p)
+            out[rel] = df.drop(columns=[c for c in df.columns if volatile.search(c)]).to_csv(index=False)
+        elif p.suffix in (".md", ".html") and "tables" in p.parts:
+            continue  # the CSV's rows again, with its times
+        else:
+            out[rel] = p.read_bytes()
+    return out
+
+
+def test_a_killed_run_resumes_to_the_same_outputs(tmp_path):
+    """`wast3d run` killed (SIGKILL, the whole process group) mid-stylization and again mid-render, then
+    run again, ends with the outputs of a run never interrupted, byte for byte."""
+    import signal
+    import time
+
+    from wast3d.ply import write_ply
+    from wast3d.procedural import make_scene
+
+    write_ply(tmp_path / "blob.ply", make_scene("content", "torus", 1500))
+    write_ply(tmp_path / "peb.ply", make_scene("style", "pebbles", 3000))
+    cfg = tiny_config(tmp_path)
+    cfg.pop("sweeps")
+    cfg["scenes"] = {"blob": {"source": "ply", "path": str(tmp_path / "blob.ply")},
+                     "peb": {"source": "ply", "path": str(tmp_path / "peb.ply")}}
+    cfg["table1"]["methods"] = {"default": "ours", "colour_ot": "colour transfer", "input": "content"}
+
+    def start(out: Path) -> subprocess.Popen:
+        (out / "config").mkdir(parents=True, exist_ok=True)
+        (out / "config" / "config.yaml").write_text(yaml.safe_dump(cfg))  # a config of the user's: kept
+        return subprocess.Popen([sys.executable, "-m", "wast3d", "run", str(tmp_path / "blob.ply"),
+                                 str(tmp_path / "peb.ply"), str(out)], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+
+    def kill_when(out: Path, started: str, done: str) -> None:
+        """Run until the job that logs to ``started`` runs and ``done`` is not there yet, then SIGKILL."""
+        p = start(out)
+        deadline = time.monotonic() + 240
+        while not (out / started).exists():
+            assert p.poll() is None and time.monotonic() < deadline, f"the run ended before {started}"
+            time.sleep(0.02)
+        time.sleep(0.5)  # into the job: its interpreter is starting, or it is at work
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+        assert not (out / done).exists(), f"{done} was written before the kill: not killed mid-job"
+
+    ref, resumed = tmp_path / "ref", tmp_path / "resumed"
+    assert start(ref).wait() == 0
+    kill_when(resumed, "results/logs/sinkhorn/blob__peb_default.log", "results/stylize/blob__peb/default/stylized.ply")
+    kill_when(resumed, "results/logs/render/blob__peb_default.log", "results/render/pairs/blob__peb/default/turntable.gif")
+    assert start(resumed).wait() == 0
+    a, b = comparable(ref), comparable(resumed)
+    assert sorted(a) == sorted(b)
+    assert [k for k in a if a[k] != b[k]] == []
+    assert len(a) > 80 and "results/stylize/blob__peb/default/final.ply" in a

@@ -32,6 +32,20 @@ def command(name: str, help: str):
 # ---- info ------------------------------------------------------------------------------------
 
 
+def drop_invalid_option(sub) -> None:
+    """``--drop-invalid``, on every command that reads a scene a user gives."""
+    sub.add_argument("--drop-invalid", action="store_true",
+                     help="drop Gaussians whose values are unusable once decoded (NaN, infinite, a scale <= 0, a zero "
+                          "quaternion) instead of failing; the log says how many")
+
+
+def output_file(path: Path) -> Path:
+    """``path`` as a file to write: a ValueError naming it when it is a folder."""
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give the file to write (its extension picks the format)")
+    return path
+
+
 def scene_summary(scene) -> dict:
     """What a user inspecting a scene wants to see: counts, bounds, quantiles of scale, anisotropy,
     opacity. Pure: takes a scene, returns a dict."""
@@ -58,13 +72,14 @@ def scene_summary(scene) -> dict:
 def cmd_info(sub):
     sub.add_argument("ply", type=Path)
     sub.add_argument("--json", action="store_true", help="print JSON")
+    drop_invalid_option(sub)
 
     def run(a):
         from .formats import read_scene
         from .ply import PlyError
 
         try:
-            info = {"file": str(a.ply), "valid": True, **scene_summary(read_scene(a.ply))}
+            info = {"file": str(a.ply), "valid": True, **scene_summary(read_scene(a.ply, a.drop_invalid))}
         except (PlyError, FileNotFoundError, ValueError) as e:
             info = {"file": str(a.ply), "valid": False, "error": str(e)}
         if a.json:
@@ -87,13 +102,14 @@ def cmd_view(sub):
     sub.add_argument("--host", default="127.0.0.1", help="0.0.0.0 to reach it from other machines")
     sub.add_argument("--port", type=int, default=8080)
     sub.add_argument("--max-gaussians", type=int, default=300_000, help="per scene, most opaque kept")
+    drop_invalid_option(sub)
 
     def run(a):
         try:
             from .viewer import run_forever, serve
         except ImportError as e:  # pragma: no cover - depends on the install
             raise ValueError(f"wast3d view needs viser ({e}); pip install 'wast3d[viewer]'") from None
-        server = serve(a.ply, a.host, a.port, a.max_gaussians)
+        server = serve(a.ply, a.host, a.port, a.max_gaussians, a.drop_invalid)
         log.info("view: open http://%s:%d (Ctrl-C stops)", "localhost" if a.host in ("0.0.0.0", "127.0.0.1") else a.host,
                  server.get_port())
         run_forever(server)
@@ -122,7 +138,7 @@ def cmd_run(sub):
         import yaml
 
         from .io_utils import atomic_path
-        from .quickstart import backup_path, config_text, plan_config, two_scene_config, workflow_root
+        from .quickstart import backup_path, config_text, plan_config, stale_locks, two_scene_config, workflow_root
 
         if a.out.exists() and not a.out.is_dir():
             raise ValueError(f"{a.out}: OUT must be a folder (it is a file)")
@@ -151,6 +167,10 @@ def cmd_run(sub):
             cmd = [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", str(workdir),
                    "--profile", a.profile or str(root / "workflow" / "profiles" / "local"),
                    *(["-n", "--nolock"] if a.dry_run else []), *a.snakemake_args]
+            if not a.dry_run and stale_locks(a.out):
+                log.warning("run: %s holds the locks of a run that was killed (no Snakemake works there now): "
+                            "unlocked; the profile's rerun-incomplete redoes the jobs it left unfinished", a.out)
+                subprocess.run([*cmd, "--unlock"], capture_output=True, check=True)
             log.info("run: %s", " ".join(shlex.quote(c) for c in cmd))
             rc = subprocess.run(cmd).returncode
         if rc == 0 and not a.dry_run and None not in pair:
@@ -215,14 +235,14 @@ def cmd_scene(sub):
 def cmd_import(sub):
     sub.add_argument("ply", type=Path)
     sub.add_argument("out", type=Path)
-    sub.add_argument("--drop-invalid", action="store_true", help="drop Gaussians with NaN/inf instead of failing")
+    drop_invalid_option(sub)
 
     def run(a):
         from .formats import read_scene
         from .ply import write_ply
 
         scene = read_scene(a.ply, drop_invalid=a.drop_invalid)
-        write_ply(a.out, scene)
+        write_ply(output_file(a.out), scene)
         log.info("imported %s -> %s: %d Gaussians, SH degree %d", a.ply, a.out, len(scene), scene.sh_degree)
         return 0
 
@@ -233,12 +253,13 @@ def cmd_import(sub):
 def cmd_export(sub):
     sub.add_argument("src", type=Path, metavar="IN")
     sub.add_argument("out", type=Path, metavar="OUT")
+    drop_invalid_option(sub)
 
     def run(a):
         from .formats import read_scene, write_scene
 
-        scene = read_scene(a.src)
-        write_scene(a.out, scene)
+        scene = read_scene(a.src, a.drop_invalid)
+        write_scene(output_file(a.out), scene)
         log.info("exported %s -> %s: %d Gaussians", a.src, a.out, len(scene))
         return 0
 
@@ -254,12 +275,13 @@ def render_command(name: str, help_: str, fn: str, views: int, size: int, out_he
         sub.add_argument("out", type=Path, help=out_help)
         sub.add_argument("--views", type=int, default=views)
         sub.add_argument("--size", type=int, default=size)
+        drop_invalid_option(sub)
 
         def run(a):
             from . import render
             from .formats import read_scene
 
-            getattr(render, fn)(read_scene(a.ply), a.out, a.views, a.size)
+            getattr(render, fn)(read_scene(a.ply, a.drop_invalid), a.out, a.views, a.size)
             return 0
 
         return run

@@ -39,9 +39,11 @@ log = logging.getLogger(__name__)
 @dataclass
 @checked("cluster")
 class ClusterConfig:
-    n_clusters: int = option(0, "number of clusters (0: points / target_cluster_size)", minimum=0)
+    n_clusters: int = option(0, "number of clusters (0: points / target_cluster_size)", minimum=0,
+                              maximum=1_000_000)
     target_cluster_size: int = option(2500, "points per cluster when n_clusters is 0", minimum=1)
-    max_clusters: int = option(400, "cap on the derived number of clusters (the paper: 400)", minimum=1)
+    max_clusters: int = option(400, "cap on the derived number of clusters (the paper: 400)", minimum=1,
+                                maximum=1_000_000)
     colour_weight: float = option(0.2, "weight of RGB against positions normalized to the unit ball", minimum=0)
     flatness: float = option(0.5, "split clusters whose mean outward unit normal is shorter than this, in two by their "
                                   "normals, until flat (0: off, the paper)", minimum=0, maximum=1)

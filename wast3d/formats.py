@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .gaussians import GaussianScene
+from .gaussians import GaussianScene, rgb_to_sh_dc
 from .io_utils import atomic_path
-from .ply import PlyError, read_ply, write_compressed_ply, write_ply
+from .ply import PlyError, check_writable, checked, read_ply, write_compressed_ply, write_ply
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +47,8 @@ def read_scene(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     path = Path(path)
     ext = _format(path)
     if ext == ".splat":
-        return read_splat(path)
-    return read_spz(path) if ext == ".spz" else read_ply(path, drop_invalid=drop_invalid)
+        return read_splat(path, drop_invalid)
+    return (read_spz if ext == ".spz" else read_ply)(path, drop_invalid=drop_invalid)
 
 
 def write_scene(path: str | Path, scene: GaussianScene) -> None:
@@ -69,6 +69,7 @@ def write_scene(path: str | Path, scene: GaussianScene) -> None:
 
 def write_splat(path: str | Path, scene: GaussianScene) -> None:
     """``scene`` as a ``.splat`` file (module docstring), atomically."""
+    check_writable(scene, path, ".splat")
     s = scene.detach().to(device="cpu", dtype=torch.float32)
     if s.sh_degree > 0:
         log.warning("%s: .splat keeps the DC colour only; SH degree %d dropped", path, s.sh_degree)
@@ -83,9 +84,10 @@ def write_splat(path: str | Path, scene: GaussianScene) -> None:
         Path(tmp).write_bytes(rec.tobytes())
 
 
-def read_splat(path: str | Path) -> GaussianScene:
+def read_splat(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     """A ``.splat`` file (module docstring); :class:`~wast3d.ply.PlyError` naming the file and the
-    field for a size that is no multiple of 32 bytes, NaN/inf, a scale <= 0 or a zero quaternion."""
+    field for a size that is no multiple of 32 bytes, and for values unusable once decoded (NaN/inf, a
+    scale <= 0, a zero quaternion: :func:`~wast3d.ply.checked`, which ``drop_invalid`` drops)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
@@ -94,18 +96,16 @@ def read_splat(path: str | Path) -> GaussianScene:
         raise PlyError(f"{path}: .splat: {len(raw)} bytes is not a whole number of {SPLAT_DTYPE.itemsize}-byte "
                        "Gaussians (truncated?)")
     rec = np.frombuffer(raw, dtype=SPLAT_DTYPE)
-    for field in ("position", "scale"):
-        bad = ~np.isfinite(rec[field]).all(1)
-        if bad.any():
-            raise PlyError(f"{path}: .splat field '{field}': {int(bad.sum())} Gaussians with NaN/inf "
-                           f"(first {int(np.argmax(bad))})")
-    if (rec["scale"] <= 0).any():
-        raise PlyError(f"{path}: .splat field 'scale': {int((rec['scale'] <= 0).any(1).sum())} Gaussians with a scale <= 0")
     q = (rec["rot"].astype(np.float32) - 128) / 128
-    if (np.abs(q).sum(1) == 0).any():
-        raise PlyError(f"{path}: .splat field 'rot': {int((np.abs(q).sum(1) == 0).sum())} zero quaternions")
     rgba = rec["rgba"].astype(np.float32) / 255
     eps = 0.5 / 255  # alpha 0 or 255 has no finite logit
-    return GaussianScene.from_activated(torch.from_numpy(rec["position"].copy()), torch.from_numpy(rec["scale"].copy()),
-                                        torch.from_numpy(q), opacities=torch.from_numpy(rgba[:, 3].clip(eps, 1 - eps)),
-                                        rgb=torch.from_numpy(rgba[:, :3]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scene = GaussianScene(
+            means=torch.from_numpy(rec["position"].copy()),
+            log_scales=torch.from_numpy(np.log(rec["scale"].astype(np.float32))),
+            quats=torch.from_numpy(q),
+            opacity_logits=torch.logit(torch.from_numpy(rgba[:, 3].clip(eps, 1 - eps))),
+            sh_dc=rgb_to_sh_dc(torch.from_numpy(rgba[:, :3])),
+            sh_rest=torch.zeros(len(rec), 0, 3),
+        )
+    return checked(scene, path, drop_invalid, ".splat:")

@@ -37,6 +37,15 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             tmp.unlink()
 
 
+def memory_available() -> int | None:
+    """Bytes of memory this machine can still give (psutil's ``available``), or None where unknown."""
+    try:
+        import psutil
+    except ImportError:  # pragma: no cover - psutil comes with the dependencies
+        return None
+    return int(psutil.virtual_memory().available)
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

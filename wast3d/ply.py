@@ -42,6 +42,67 @@ class PlyError(ValueError):
 
 ELEMENT = "element"  # the optional label property (GaussianScene.element)
 
+# What every reader checks after decoding, whatever the format: the field as a user knows it, the
+# values as the renderer uses them (a log-scale of 1000 is finite in the file and infinite as a scale).
+FIELDS = (
+    ("position", lambda s: s.means),
+    ("scale", lambda s: s.scales),
+    ("rotation", lambda s: s.quats),
+    ("opacity", lambda s: s.opacity_logits[:, None]),
+    ("colour (f_dc)", lambda s: s.sh_dc),
+    ("SH rest (f_rest)", lambda s: s.sh_rest.flatten(1)),
+)
+
+
+def _bad_rows(scene: GaussianScene) -> dict[str, torch.Tensor]:
+    """Field -> [N] bool, the Gaussians whose decoded values in that field are unusable: NaN or
+    infinite, a scale that is not positive, a quaternion of length 0."""
+    out = {}
+    for name, get in FIELDS:
+        v = get(scene)
+        bad = ~torch.isfinite(v).all(1)
+        if name == "scale":
+            bad |= (v <= 0).any(1)
+        elif name == "rotation":
+            bad |= v.norm(dim=1) == 0
+        out[name] = bad
+    return out
+
+
+def checked(scene: GaussianScene, path: str | Path, drop_invalid: bool = False, what: str = "") -> GaussianScene:
+    """The one rule of every reader: a Gaussian with an unusable value (:func:`_bad_rows`) is a
+    :class:`PlyError` naming the file, the field and the first row, or, with ``drop_invalid``, dropped
+    (the count is logged); none left is an error."""
+    fmt = f"{what} " if what else ""
+    drop = torch.zeros(len(scene), dtype=torch.bool)
+    for name, bad in _bad_rows(scene).items():
+        if not bad.any():
+            continue
+        if not drop_invalid:
+            row = int(bad.nonzero()[0, 0])
+            raise PlyError(f"{path}: {fmt}field '{name}': {int(bad.sum())} Gaussians with values that are NaN, "
+                           f"infinite{' or not positive' if name == 'scale' else ''}"
+                           f"{' or of length 0' if name == 'rotation' else ''} once decoded (first at row {row}); "
+                           "--drop-invalid drops them")
+        log.warning("%s: dropped %d Gaussians with an unusable '%s'", path, int(bad.sum()), name)
+        drop |= bad
+    if drop.any():
+        log.warning("%s: dropped %d of %d Gaussians in all (--drop-invalid)", path, int(drop.sum()), len(scene))
+        scene = scene.subset(~drop)
+        if len(scene) == 0:
+            raise PlyError(f"{path}: {fmt}no Gaussians left")
+    return scene
+
+
+def check_writable(scene: GaussianScene, path: str | Path, what: str, dtype=torch.float32) -> None:
+    """A writer refuses what its format cannot hold: a value that is not finite in ``dtype`` (3e38 x 10
+    in a float32 file), named by field and row, as :func:`checked` names them when reading."""
+    s = scene.detach().to(device="cpu", dtype=dtype) if dtype is not None else scene
+    for name, bad in _bad_rows(s).items():
+        if bad.any():
+            raise ValueError(f"{path}: {what} cannot hold field '{name}' of {int(bad.sum())} Gaussians (NaN, infinite "
+                             f"or beyond {str(dtype).replace('torch.', '')}; first at row {int(bad.nonzero()[0, 0])})")
+
 
 def property_names(sh_degree: int) -> list[str]:
     k = num_sh_rest(sh_degree)
@@ -63,6 +124,7 @@ def scene_to_array(scene: GaussianScene) -> np.ndarray:
 
 def write_ply(path: str | Path, scene: GaussianScene) -> None:
     """Write ``scene`` as a binary little-endian 3DGS PLY, atomically (temporary file, then rename)."""
+    check_writable(scene, path, "a PLY")
     names = property_names(scene.sh_degree)
     arr = scene_to_array(scene)
     dtype = [(n, "<f4") for n in names]
@@ -82,6 +144,7 @@ def write_compressed_ply(path: str | Path, scene: GaussianScene) -> None:
     element), atomically. Quantized: positions and log-scales to 11-10-11 bits of each 256-Gaussian
     chunk's range, rotations to 10 bits per component, colour and opacity to 8 bits, SH rest to 8 bits
     of [-4, 4]; element labels are not kept."""
+    check_writable(scene, path, "a compressed PLY")
     s = scene.detach().to(device="cpu", dtype=torch.float32)
     rec = encode(s.means.numpy(), s.log_scales.numpy(), s.quats.numpy(), s.opacity_logits.numpy(), s.sh_dc.numpy(),
                  s.sh_rest.numpy())
@@ -99,8 +162,34 @@ def _read_vertex(path: Path):
         raise PlyError(f"{path}: corrupt or truncated PLY ({type(e).__name__}: {e})") from None
     if "vertex" not in ply:
         raise PlyError(f"{path}: no 'vertex' element (elements: {[el.name for el in ply.elements]})")
+    _check_length(path, ply)
     v = ply["vertex"]
     return v, [p.name for p in v.properties], ply
+
+
+def _check_length(path: Path, ply) -> None:
+    """A binary PLY's data must be exactly what its header's counts say: more bytes are rows the header
+    does not count (a reader would drop them without a word), fewer a truncated file. Elements with list
+    properties have no fixed size and are not checked."""
+    from plyfile import PlyListProperty
+
+    if ply.text or any(isinstance(p, PlyListProperty) for el in ply.elements for p in el.properties):
+        return
+    with open(path, "rb") as f:
+        head = b""
+        while b"end_header" not in head and len(head) < (1 << 24):
+            block = f.read(1 << 16)
+            if not block:
+                return  # plyfile read it, so this cannot happen; no header end: nothing to compare
+            head += block
+    start = head.index(b"end_header") + len(b"end_header")
+    start += 2 if head[start:start + 2] == b"\r\n" else 1
+    data = path.stat().st_size - start
+    expect = sum(el.count * el.dtype().itemsize for el in ply.elements)
+    if data != expect:
+        counts = ", ".join(f"'{el.name}' {el.count} rows of {el.dtype().itemsize} bytes" for el in ply.elements)
+        raise PlyError(f"{path}: the header's element counts ({counts}) describe {expect} bytes of data, the file holds "
+                       f"{data}: {'more rows than the header counts' if data > expect else 'truncated'}")
 
 
 def _column(v, path: Path, name: str) -> np.ndarray:
@@ -118,14 +207,15 @@ def is_gaussian_ply(path: str | Path) -> bool:
 def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     """Read a 3DGS PLY, or a plain point cloud as initial Gaussians.
 
-    Raises :class:`PlyError` naming the file and the property for: a truncated or corrupt file, a
-    missing property, a count of ``f_rest_*`` that is no SH degree (or has gaps), and NaN/inf values.
-    With ``drop_invalid=True`` rows with NaN/inf are dropped instead and the count is logged.
+    Raises :class:`PlyError` naming the file and the property for: a truncated or corrupt file, data
+    longer than the header's counts, a missing property, a count of ``f_rest_*`` that is no SH degree
+    (or has gaps), and values unusable once decoded (:func:`checked`; ``drop_invalid=True`` drops those
+    Gaussians instead and logs the count).
     """
     path = Path(path)
     v, names, ply = _read_vertex(path)
     if is_compressed(ply):
-        return _read_compressed(path, ply)
+        return _read_compressed(path, ply, drop_invalid)
     gaussian_markers = {"opacity", "f_dc_0", "scale_0", "rot_0"}
     if not gaussian_markers & set(names):
         return _read_point_cloud(path, v, names, drop_invalid)
@@ -149,31 +239,17 @@ def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
         "log_scales": ["scale_0", "scale_1", "scale_2"],
         "quats": ["rot_0", "rot_1", "rot_2", "rot_3"],
     }
-    cols = {}
-    n = v.count
-    valid = np.ones(n, dtype=bool)
-    for g, props in groups.items():
-        arrs = [_column(v, path, p) for p in props]
-        a = np.stack(arrs, axis=1) if arrs else np.zeros((n, 0), np.float32)
-        bad = ~np.isfinite(a)
-        if bad.any():
-            rows, c = np.nonzero(bad)
-            if not drop_invalid:
-                raise PlyError(
-                    f"{path}: property '{props[c[0]]}' has {int(bad.any(1).sum())} rows with NaN/inf "
-                    f"(first at vertex {rows[0]}); pass drop_invalid / --drop-invalid to drop them"
-                )
-            valid &= ~bad.any(1)
-        cols[g] = a
-    k = num_sh_rest(degree)
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a[valid]))  # noqa: E731
+    cols = {g: np.stack([_column(v, path, p) for p in props], axis=1) if props else np.zeros((v.count, 0), np.float32)
+            for g, props in groups.items()}
+    n, k = v.count, num_sh_rest(degree)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
     scene = GaussianScene(
         means=t(cols["means"]),
         log_scales=t(cols["log_scales"]),
         quats=t(cols["quats"]),
         opacity_logits=t(cols["opacity_logits"])[:, 0].contiguous(),
         sh_dc=t(cols["sh_dc"]),
-        sh_rest=t(cols["rest"]).reshape(int(valid.sum()), 3, k).transpose(1, 2).contiguous(),
+        sh_rest=t(cols["rest"]).reshape(n, 3, k).transpose(1, 2).contiguous(),
     )
     if ELEMENT in names:
         el = np.asarray(v[ELEMENT])
@@ -181,16 +257,11 @@ def read_ply(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
             raise PlyError(f"{path}: property '{ELEMENT}' must be an integer type, got {el.dtype}")
         if (el < 0).any():
             raise PlyError(f"{path}: property '{ELEMENT}': {int((el < 0).sum())} negative labels (0 is the ground)")
-        scene.element = torch.from_numpy(el[valid].astype(np.int64))
-    if (~valid).any():
-        log.warning("%s: dropped %d of %d Gaussians with NaN/inf values", path, int((~valid).sum()), n)
-    qn = scene.quats.norm(dim=-1)
-    if (qn == 0).any():
-        raise PlyError(f"{path}: property 'rot_*': {int((qn == 0).sum())} zero quaternions")
-    return scene
+        scene.element = torch.from_numpy(el.astype(np.int64))
+    return checked(scene, path, drop_invalid)
 
 
-def _read_compressed(path: Path, ply) -> GaussianScene:
+def _read_compressed(path: Path, ply, drop_invalid: bool = False) -> GaussianScene:
     try:
         d = decode(ply)
     except ValueError as e:
@@ -199,7 +270,7 @@ def _read_compressed(path: Path, ply) -> GaussianScene:
     log.info("%s: PlayCanvas/SuperSplat compressed layout: %d Gaussians in %d chunks, colour ranges %s, "
              "SH rest %d per channel", path, len(d["means"]), info["chunks"], "yes" if info["colour_ranges"] else "no",
              info["sh_rest"])
-    return GaussianScene(**{k: torch.from_numpy(a) for k, a in d.items()})
+    return checked(GaussianScene(**{k: torch.from_numpy(a) for k, a in d.items()}), path, drop_invalid, "compressed PLY:")
 
 
 def _read_point_cloud(path: Path, v, names: list[str], drop_invalid: bool) -> GaussianScene:

@@ -75,10 +75,11 @@ class PretrainConfig:
     lr_opacities: float = option(5e-2, "Adam learning rate of the opacity logits", minimum=0)
     lr_sh0: float = option(2.5e-3, "Adam learning rate of the DC colour", minimum=0)
     lr_shN: float = option(2.5e-3 / 20, "Adam learning rate of the higher SH coefficients", minimum=0)
-    init_points: int = option(20000, "random initial Gaussians (Blender data has no SfM points)", minimum=0)
+    init_points: int = option(20000, "random initial Gaussians (Blender data has no SfM points)", minimum=0,
+                              maximum=1_000_000_000)
     init_extent: float = option(0.0, "half-size of the initial cube (0: from the cameras)", minimum=0)
     init_opacity: float = option(0.1, "initial opacity", minimum=0)
-    max_gaussians: int = option(200_000, "cap of the densification", minimum=0)
+    max_gaussians: int = option(200_000, "cap of the densification", minimum=0, maximum=1_000_000_000)
     refine_start: int = option(300, "first densification step", minimum=0)
     refine_stop: int = option(0, "last densification step (0: 3/4 of iterations)", minimum=0)
     refine_every: int = option(100, "densification period", minimum=0)

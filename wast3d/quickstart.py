@@ -164,3 +164,38 @@ def backup_path(path: Path) -> Path:
         k += 1
         out = path.with_name(f"{path.name}.bak{k}")
     return out
+
+
+# ---- a run killed before it could unlock its folder ----------------------------------------------
+
+
+def snakemake_running_in(out: Path) -> list[int]:
+    """PIDs of live Snakemake processes working on folder ``out`` (their working directory, or ``-d``/
+    ``--directory`` naming it), this process's ancestors left out."""
+    import os
+
+    import psutil
+
+    out = Path(out).resolve()
+    mine = {p.pid for p in psutil.Process().parents()} | {os.getpid()}
+    found = []
+    for p in psutil.process_iter(["pid", "cmdline", "cwd"]):
+        try:
+            cmd = p.info["cmdline"] or []
+            if p.info["pid"] in mine or not any("snakemake" in Path(c).name for c in cmd[:3]):
+                continue
+            dirs = [cmd[i + 1] for i, c in enumerate(cmd[:-1]) if c in ("-d", "--directory")]
+            where = [Path(d) if Path(d).is_absolute() else Path(p.info["cwd"] or "/") / d for d in dirs]
+            where = where or [Path(p.info["cwd"] or "/")]
+            if any(w.resolve() == out for w in where):
+                found.append(p.info["pid"])
+        except (psutil.Error, OSError):
+            continue
+    return found
+
+
+def stale_locks(out: Path) -> bool:
+    """Whether Snakemake's locks in ``out`` belong to no live process: a run killed (SIGKILL, a power
+    loss) before it could remove them. Then they only stop the next run, which resumes the killed one."""
+    locks = Path(out) / ".snakemake" / "locks"
+    return locks.is_dir() and any(locks.iterdir()) and not snakemake_running_in(out)

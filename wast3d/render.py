@@ -72,13 +72,13 @@ class RenderConfig:
     blob-like Gaussians a mosaic of discs whatever the surface's shape); fps: GIF frame rate.
     """
 
-    frames: int = option(24, "turntable frames", minimum=1)
-    size: int = option(256, "frame side in pixels", minimum=8)
+    frames: int = option(24, "turntable frames", minimum=1, maximum=3600)
+    size: int = option(256, "frame side in pixels", minimum=8, maximum=16384)
     elevation: float = option(30.0, "orbit elevation, degrees")
     fov: float = option(40.0, "field of view, degrees", exclusiveMinimum=0, exclusiveMaximum=180)
     key_views: int = option(4, "evenly spaced frames that also get depth and normal maps", minimum=1)
     closeup_zoom: float = option(3.0, "magnification of the close-up", minimum=1)
-    closeup_size: int = option(0, "close-up side in pixels (0: size)", minimum=0)
+    closeup_size: int = option(0, "close-up side in pixels (0: size)", minimum=0, maximum=16384)
     normals: str = option("depth", "depth: from the depth map (the rendered surface's relief); axis: each Gaussian's "
                                    "shortest axis, alpha-blended", enum=["axis", "depth"])
     fps: float = option(8.0, "GIF frame rate", exclusiveMinimum=0)

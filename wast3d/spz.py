@@ -30,14 +30,15 @@ from __future__ import annotations
 import gzip
 import logging
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .gaussians import GaussianScene
-from .io_utils import atomic_path
-from .ply import PlyError
+from .io_utils import atomic_path, memory_available
+from .ply import PlyError, check_writable, checked
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,9 @@ SH_FLIP = np.array([_y, _z, _x, _x * _y, _y * _z, 1, _x * _z, 1, _y, _x * _y * _
 POS_FLIP = np.array([_x, _y, _z], np.float32)
 QUAT_FLIP = np.array([1.0, _y * _z, _x * _z, _x * _y], np.float32)  # w, x, y, z
 SQRT1_2 = np.float32(0.7071067811865476)
+STEP = 1 << 24  # decompression goes in steps of at most this many bytes
+EXTENSIONS_MAX = 1 << 20  # bytes a version 1-3 stream may hold beyond its arrays (extensions); more is refused
+DECODED_BYTES = 4 * (3 + 3 + 4 + 1 + 3) * 3  # float32 bytes per Gaussian while decoding (arrays and temporaries)
 
 
 def _round(x: np.ndarray) -> np.ndarray:
@@ -71,10 +75,13 @@ def _u8(x: np.ndarray) -> np.ndarray:
 
 def pack_positions(p: np.ndarray, bits: int = FRACTIONAL_BITS) -> np.ndarray:
     """[N, 3] float positions (already in SPZ axes) -> [N * 9] uint8: 24-bit fixed point, little-endian."""
-    q = _round(p.astype(np.float64) * (1 << bits)).astype(np.int64)
-    if np.abs(q).max(initial=0) >= 1 << 23:
-        raise ValueError(f"SPZ: positions beyond +-{(1 << 23) / (1 << bits):g} units do not fit its 24-bit fixed point")
-    q = q.astype(np.int32).reshape(-1).view(np.uint32)
+    f = _round(p.astype(np.float64) * (1 << bits))
+    out = ~(np.abs(f) < 1 << 23)  # NaN too; tested before the cast to int, which would wrap 3e38 to anything
+    if out.any():
+        row = int(np.argwhere(out)[0, 0])
+        raise ValueError(f"SPZ: field 'position': {int(out.any(1).sum())} Gaussians beyond +-{(1 << 23) / (1 << bits):g} "
+                         f"units do not fit its 24-bit fixed point (first at row {row}: {p[row].tolist()})")
+    q = f.astype(np.int32).reshape(-1).view(np.uint32)
     return np.stack([q & 0xFF, (q >> 8) & 0xFF, (q >> 16) & 0xFF], 1).astype(np.uint8).reshape(-1)
 
 
@@ -144,6 +151,7 @@ def write_spz(path: str | Path, scene: GaussianScene, version: int = 4) -> None:
     path = Path(path)
     if version not in VERSIONS:
         raise ValueError(f"{path}: SPZ version {version} is not written (known: {', '.join(map(str, VERSIONS))})")
+    check_writable(scene, path, "SPZ")
     s = scene.detach().to(device="cpu", dtype=torch.float32)
     if s.element is not None:
         log.info("%s: SPZ has no field for element labels; not kept", path)
@@ -201,25 +209,22 @@ def _sizes(n: int, deg: int, version: int) -> list[tuple[str, int]]:
             ("rotations", n * (4 if version >= 3 else 3)), ("sh", n * SH_DIM[deg] * 3)]
 
 
-def read_spz(path: str | Path) -> GaussianScene:
+def read_spz(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
     """An SPZ file of version 1-4 (module docstring); :class:`~wast3d.ply.PlyError` naming the file and
-    the field for a bad magic, version, count, SH degree, truncation or corrupt compressed data."""
+    the field for a bad magic, version, count, SH degree, truncation or corrupt compressed data, a
+    stream holding more than its header's count implies (decompression stops there: a small file
+    cannot inflate into gigabytes), a count the machine's memory cannot hold, and values unusable once
+    decoded (:func:`~wast3d.ply.checked`; ``drop_invalid`` drops those Gaussians)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
     data = path.read_bytes()
     if data[:2] == b"\x1f\x8b":  # versions 1-3: one gzip stream
-        try:
-            data = gzip.decompress(data)
-        except (OSError, EOFError, ValueError) as e:
-            raise PlyError(f"{path}: SPZ: the gzip stream is corrupt or truncated ({e})") from None
-        if len(data) < LEGACY_HEADER.size:
-            raise PlyError(f"{path}: SPZ header: {len(data)} bytes, need {LEGACY_HEADER.size}")
+        data, flags, extra = _inflate_legacy(path, data)
         magic, version, n, deg, bits, flags, _ = LEGACY_HEADER.unpack_from(data)
-        _check_header(path, magic, version, n, deg, legacy=True)
-        arrays, end = _arrays(path, data, LEGACY_HEADER.size, n, deg, version)
-        if flags & FLAG_EXTENSIONS or end < len(data):
-            log.info("%s: SPZ extensions (%d bytes) skipped", path, len(data) - end)
+        arrays, _ = _arrays(path, data, LEGACY_HEADER.size, n, deg, version)
+        if flags & FLAG_EXTENSIONS or extra:
+            log.info("%s: SPZ extensions (%d bytes) skipped", path, extra)
     else:
         if len(data) < HEADER.size:
             raise PlyError(f"{path}: SPZ header: {len(data)} bytes, need {HEADER.size} (not an SPZ file?)")
@@ -230,19 +235,63 @@ def read_spz(path: str | Path) -> GaussianScene:
             log.info("%s: SPZ extensions (%d bytes) skipped", path, toc - HEADER.size)
     if flags & FLAG_ANTIALIASED:
         log.warning("%s: SPZ marked antialiased (trained with a 2D filter); read as a plain 3DGS scene", path)
-    return _unpack(arrays, n, deg, bits, version, path)
+    return checked(_unpack(arrays, n, deg, bits, version, path), path, drop_invalid, "SPZ:")
+
+
+def _inflate_legacy(path: Path, data: bytes) -> tuple[bytearray, int, int]:
+    """A version 1-3 file's gzip stream, inflated in steps of at most STEP bytes and never beyond what
+    its header's count implies (plus EXTENSIONS_MAX) -> (the header and arrays, flags, bytes of
+    extensions beyond them, read and dropped)."""
+    d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+
+    def more(limit: int, tail: bytes) -> bytes:
+        try:
+            return d.decompress(tail, limit)
+        except zlib.error as e:
+            raise PlyError(f"{path}: SPZ: the gzip stream is corrupt ({e})") from None
+
+    head = more(LEGACY_HEADER.size, data)
+    if len(head) < LEGACY_HEADER.size:
+        raise PlyError(f"{path}: SPZ: the gzip stream ends after {len(head)} bytes, inside its {LEGACY_HEADER.size}-byte "
+                       "header (truncated?)")
+    magic, version, n, deg, _, flags, _ = LEGACY_HEADER.unpack_from(head)
+    _check_header(path, magic, version, n, deg, legacy=True)
+    need = LEGACY_HEADER.size + sum(size for _, size in _sizes(n, deg, version))
+    out = bytearray(head)
+    while len(out) < need:
+        block = more(min(STEP, need - len(out)), d.unconsumed_tail)
+        if not block:
+            break  # the stream ended: _arrays names the field it ends in
+        out += block
+    extra = 0
+    while not d.eof:
+        block = more(min(STEP, EXTENSIONS_MAX + 1 - extra), d.unconsumed_tail)
+        if not block:
+            break
+        extra += len(block)
+        if extra > EXTENSIONS_MAX:
+            raise PlyError(f"{path}: SPZ: the gzip stream holds more than the {need} bytes its header's count "
+                           f"({n} Gaussians, SH degree {deg}) implies, and more than {EXTENSIONS_MAX} bytes of "
+                           "extensions beyond them: corrupt, or a decompression bomb; not read further")
+    return out, flags, extra
 
 
 def _check_header(path: Path, magic: int, version: int, n: int, deg: int, legacy: bool) -> None:
     if magic != MAGIC:
         raise PlyError(f"{path}: SPZ header 'magic': {magic:#010x}, expected {MAGIC:#010x} (not an SPZ file)")
     if not (1 <= version <= 3 if legacy else version == 4):
-        raise PlyError(f"{path}: SPZ header 'version': {version} is not supported "
-                       f"({'gzip files hold versions 1-3' if legacy else 'known: 1-4'})")
+        raise PlyError(f"{path}: SPZ header 'version': {version} in a "
+                       + ("gzip stream, which holds versions 1-3" if legacy else
+                          "Zstandard container, which holds version 4 (versions 1-3 are gzip streams)"))
     if n == 0:
         raise PlyError(f"{path}: SPZ header 'numPoints': 0 Gaussians")
     if deg not in SH_DIM:
         raise PlyError(f"{path}: SPZ header 'shDegree': {deg} (known: 0-4)")
+    need = sum(size for _, size in _sizes(n, deg, version)) + n * (DECODED_BYTES + 12 * SH_DIM[deg])
+    free = memory_available()
+    if free is not None and need > free:
+        raise PlyError(f"{path}: SPZ header 'numPoints': {n} Gaussians need about {need / 2**30:.1f} GiB to read, "
+                       f"this machine has {free / 2**30:.1f} GiB available")
 
 
 def _zstd_arrays(path: Path, data: bytes, n: int, deg: int, version: int, streams: int, toc: int) -> list[np.ndarray]:
@@ -262,14 +311,30 @@ def _zstd_arrays(path: Path, data: bytes, n: int, deg: int, version: int, stream
         if offset + csize > len(data):
             raise PlyError(f"{path}: SPZ stream '{name}': the file ends {offset + csize - len(data)} bytes short (truncated?)")
         try:
-            raw = dctx.decompress(data[offset:offset + csize], max_output_size=size)
+            raw = _inflate_zstd(dctx, memoryview(data)[offset:offset + csize], size)
         except zstandard.ZstdError as e:
             raise PlyError(f"{path}: SPZ stream '{name}': corrupt Zstandard data ({e})") from None
+        if len(raw) > size:
+            raise PlyError(f"{path}: SPZ stream '{name}': holds more than the {size} bytes its table of contents and "
+                           f"header ({n} Gaussians) give; not read further")
         if len(raw) != size:
             raise PlyError(f"{path}: SPZ stream '{name}': {len(raw)} bytes decompressed, expected {size}")
         got[name] = np.frombuffer(raw, np.uint8)
         offset += csize
     return [got.get(name, np.zeros(0, np.uint8)) for name, _ in sizes]
+
+
+def _inflate_zstd(dctx, frame, size: int) -> bytearray:
+    """One Zstandard stream, read in steps of at most STEP bytes, and at most ``size + 1`` bytes in all
+    (one more than expected tells a stream that holds more)."""
+    out = bytearray()
+    with dctx.stream_reader(frame, read_across_frames=True) as r:
+        while len(out) <= size:
+            block = r.read(min(STEP, size + 1 - len(out)))
+            if not block:
+                break
+            out += block
+    return out
 
 
 def _unpack(arrays: list[np.ndarray], n: int, deg: int, bits: int, version: int, path: Path) -> GaussianScene:

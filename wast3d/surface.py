@@ -98,7 +98,7 @@ class SurfaceConfig:
     visibility: bool = option(True, "keep only centres within depth_tolerance of the rendered depth in at least one "
                                     "view (removes interior Gaussians)")
     views: int = option(24, "orbit views of the visibility test", minimum=1)
-    resolution: int = option(200, "pixels (side) of the visibility renders", minimum=16)
+    resolution: int = option(200, "pixels (side) of the visibility renders", minimum=16, maximum=16384)
     depth_tolerance: float = option(0.02, "visibility: distance to the rendered depth, as a fraction of the scene "
                                           "radius", exclusiveMinimum=0)
     max_points: int = option(0, "density-uniform resampling down to this many points (0: off)", minimum=0)
@@ -132,7 +132,7 @@ class StyleCleanConfig:
     visibility: bool = option(True, "drop hidden Gaussians: those of which less than min_seen is seen in every view "
                                     "from above")
     views: int = option(24, "views (elevations 15-80 degrees) of the visibility test", minimum=1)
-    resolution: int = option(200, "pixels (side) of the visibility renders", minimum=16)
+    resolution: int = option(200, "pixels (side) of the visibility renders", minimum=16, maximum=16384)
     min_seen: float = option(0.2, "visibility: the share of a Gaussian (its blending weight over its weight alone and "
                                   "face-on) its best view must show. A trained patch keeps a dense ground under its "
                                   "elements that its own views barely show and the content's curved surface lays "

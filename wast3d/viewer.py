@@ -67,7 +67,8 @@ def view_camera(width: int, height: int) -> Camera:
     return Camera(look_at(VIEW_EYE, (0.0, 0.0, 0.0)), f, f, width / 2, height / 2, width, height, name="view")
 
 
-def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaussians: int | None = 300_000):
+def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaussians: int | None = 300_000,
+          drop_invalid: bool = False):
     """Start a viser server showing the scenes in ``paths`` one at a time (a dropdown switches);
     returns the server (it runs in threads).
 
@@ -78,7 +79,7 @@ def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaus
 
     from .formats import read_scene
 
-    scenes = {f"{i}: {Path(p).name}": read_scene(p) for i, p in enumerate(paths)}
+    scenes = {f"{i}: {Path(p).name}": read_scene(p, drop_invalid) for i, p in enumerate(paths)}
     server = viser.ViserServer(host=host, port=port, verbose=False)
     server.scene.set_up_direction("+z")
     server.initial_camera.look_at = (0.0, 0.0, 0.0)

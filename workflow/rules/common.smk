@@ -8,16 +8,22 @@ import json
 import shlex
 import sys
 
-from snakemake.utils import validate
+import yaml
 
 
+# the config checked before anything else reads it: its size (YAML alias bombs), finite numbers, then
+# the schema, each error one line naming the config file and the key (wast3d/config_check.py)
+_CONFIG_FILES = [str(f) for f in workflow.configfiles]
+_CHECK.check_size(config, f"config ({', '.join(_CONFIG_FILES) or '--config'})")
 # the one required key a scene's `source` alone does not say, named before the schema's whole-oneOf message
 for _name, _s in (config.get("scenes") or {}).items():
     if isinstance(_s, dict) and _s.get("source") in ("images", "procedural") and "kind" not in _s:
-        raise ValueError(f"config: scenes.{_name}: 'kind' (content or style) is required for source {_s['source']}"
-                         + (": a style's images are pretrained with the regularizers of eq. 1-2, a content's without"
-                            if _s["source"] == "images" else ""))
-validate(config, schema="../schemas/config.schema.yaml")
+        raise _CHECK.ConfigError(
+            f"{_CHECK.source(('scenes', _name), _CONFIG_FILES)}: scenes.{_name}: 'kind' (content or style) is required "
+            f"for source {_s['source']}" + (": a style's images are pretrained with the regularizers of eq. 1-2, a "
+                                            "content's without" if _s["source"] == "images" else ""))
+with open(os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.yaml")) as _f:
+    _CHECK.check_config(config, yaml.safe_load(_f), _CONFIG_FILES)
 
 RESULTS = "results"
 
@@ -178,22 +184,7 @@ def stage_params(command, block):
     return stage_json(block)
 
 
-def _load_stages():
-    """The stage declarations that go with these rules, read by path (whatever else is installed): the
-    checkout's wast3d/stages.py, or, in a wheel (the workflow is the data package wast3d/_workflow), the
-    package's own."""
-    paths = [os.path.join(workflow.basedir, "wast3d", "stages.py"), os.path.join(workflow.basedir, "..", "stages.py")]
-    path = next((p for p in paths if os.path.isfile(p)), None)
-    if path is None:
-        raise FileNotFoundError(f"the stage declarations (wast3d/stages.py) are in none of {', '.join(paths)}")
-    spec = importlib.util.spec_from_file_location("wast3d_stages", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
-
-
-_DECLARATIONS = _load_stages()
+_DECLARATIONS = _load("stages.py")  # the stage declarations that go with these rules
 STAGES = _DECLARATIONS.STAGES
 if os.path.isdir(os.path.join(workflow.basedir, "wast3d")):  # a checkout: its own package, not another install's
     sys.path.insert(0, workflow.basedir)
@@ -277,6 +268,12 @@ for _name, _s in SCENES.items():
         logger.info(f"scene '{_name}': left out style cleaning ({why})")
     if _s.get("labels_from") and _s["labels_from"] not in SCENES:
         raise ValueError(f"config: scenes.{_name}.labels_from: scene '{_s['labels_from']}' is not defined under 'scenes'")
+
+# sizes no machine of this run can hold, before the first job (the memory only where jobs run here)
+import psutil
+
+_CHECK.check_sizes(SCENES, PARTITIONS, USED_SCENES, CONTENTS, _CONFIG_FILES,
+                   psutil.virtual_memory().total if workflow.local_exec else None)
 
 
 def table_experiments(table):

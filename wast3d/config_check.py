@@ -1,0 +1,149 @@
+"""The workflow's config checked before anything runs, with errors a user can act on: one line naming
+the config file and the key.
+
+Order matters. A YAML file of a kilobyte can expand, through nested aliases, into billions of
+values: each alias is one shared object when loaded, but anything that walks the config (a schema
+validator, its error message printing the instance) walks every copy. So the size is bounded first
+(:func:`check_size`, which stops counting at the bound), then every number must be finite
+(:func:`check_finite`: YAML's ``.inf`` and ``.nan`` are numbers to a schema), then the schema
+(:func:`check_schema`: its best-matching error, shortened). Plain declarations: imports nothing heavy
+(the workflow loads this module by path).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Iterable
+
+MAX_VALUES = 100_000  # a config this project runs holds about 500; a bomb holds billions
+# peak memory per content Gaussian across the stages, a lower bound (docs/measurements.md, content sizes):
+# a scene that needs more than the machine has is refused before the first job
+PEAK_BYTES_PER_GAUSSIAN = 300
+
+
+class ConfigError(ValueError):
+    """A config the workflow will not run; the message names the file and the key."""
+
+
+def _walk(node: Any, path: tuple = ()) -> Iterable[tuple[tuple, Any]]:
+    yield path, node
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _walk(v, path + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _walk(v, path + (i,))
+
+
+def key(path: Iterable) -> str:
+    """``('scenes', 'ant', 'n_gaussians')`` -> ``scenes.ant.n_gaussians`` (list items as ``[i]``)."""
+    out = ""
+    for p in path:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out or "(top level)"
+
+
+def check_size(config: Any, where: str, limit: int = MAX_VALUES) -> None:
+    """A ConfigError once more than ``limit`` values are counted (counting stops there)."""
+    for n, _ in enumerate(_walk(config), 1):
+        if n > limit:
+            raise ConfigError(f"{where}: more than {limit} values once YAML aliases are expanded (nested anchors?); "
+                              "refused before it is validated")
+
+
+def check_finite(config: Any, files: list[str]) -> None:
+    """A ConfigError naming the first number that is NaN or infinite, and the file that sets it."""
+    for path, v in _walk(config):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ConfigError(f"{source(path, files)}: {key(path)}: {v} is not a finite number")
+
+
+def check_schema(config: Any, schema: dict, files: list[str]) -> None:
+    """A ConfigError for the schema's best-matching error: the file that sets the key, the key, and the
+    message (the offending value shortened: a message never prints a whole block)."""
+    from jsonschema import Draft202012Validator
+    from jsonschema.exceptions import best_match
+
+    err = best_match(Draft202012Validator(schema).iter_errors(config))
+    if err is None:
+        return
+    path = tuple(err.absolute_path)
+    msg = err.message
+    if len(msg) > 300:
+        msg = msg[:300] + " ..."
+    if err.validator == "oneOf" and isinstance(err.instance, dict):  # the whole-oneOf message says little
+        msg = f"matches none of its allowed forms ({', '.join(_forms(err.schema))}); its keys: {', '.join(map(str, err.instance))}"
+    raise ConfigError(f"{source(path, files)}: {key(path)}: {msg}")
+
+
+def _forms(schema: dict) -> list[str]:
+    out = []
+    for alt in schema.get("oneOf", []):
+        req = alt.get("required", [])
+        const = (alt.get("properties", {}).get("source") or {}).get("const")
+        out.append(f"source {const} with {', '.join(r for r in req if r != 'source')}" if const else
+                   "with " + ", ".join(req))
+    return out
+
+
+def source(path: tuple, files: list[str]) -> str:
+    """``config FILE`` for the last of ``files`` that sets ``path`` (the one whose value counts), or
+    ``config (FILE, ...)`` when none does alone (a --config override, or a key made by merging)."""
+    import yaml
+
+    for f in reversed(files):
+        try:
+            node = yaml.safe_load(Path(f).read_text())
+        except (OSError, yaml.YAMLError):
+            continue
+        try:
+            for p in path:
+                node = node[p]
+        except (KeyError, IndexError, TypeError):
+            continue
+        return f"config {f}"
+    return f"config ({', '.join(files) or '--config'})"
+
+
+def check_config(config: Any, schema: dict, files: list[str]) -> None:
+    """Size, then finite numbers, then the schema (module docstring)."""
+    check_size(config, f"config ({', '.join(files) or '--config'})")
+    check_finite(config, files)
+    check_schema(config, schema, files)
+
+
+def check_yaml_file(path: str | Path) -> None:
+    """A config file Snakemake is about to merge: loaded (aliases stay shared, so this is fast) and
+    refused beyond MAX_VALUES before Snakemake's merge walks every copy."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config {path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    check_size(data, f"config {path}")
+
+
+def check_sizes(scenes: dict, partitions: dict, used: list[str], contents: list[str], files: list[str],
+                memory: int | None) -> None:
+    """Bounds no machine of this run can meet, before the first job: a procedural scene whose Gaussians
+    need more memory than ``memory`` bytes (None: not checked), and a partition asking for more clusters
+    than a procedural content has Gaussians (k-means would clamp it)."""
+    for name in used:
+        s = scenes[name]
+        if s.get("source") != "procedural":
+            continue
+        n = s.get("n_gaussians", 30000)
+        if memory is not None and n * PEAK_BYTES_PER_GAUSSIAN > memory:
+            raise ConfigError(f"{source(('scenes', name, 'n_gaussians'), files)}: scenes.{name}.n_gaussians: {n} "
+                              f"Gaussians need at least {n * PEAK_BYTES_PER_GAUSSIAN / 2**30:.0f} GiB, this machine has "
+                              f"{memory / 2**30:.0f} GiB")
+        if name not in contents:
+            continue
+        for pname, p in partitions.items():
+            k = ((p or {}).get("cluster") or {}).get("n_clusters", 0)
+            if k > n:
+                raise ConfigError(f"{source(('partitions', pname, 'cluster', 'n_clusters'), files)}: "
+                                  f"partitions.{pname}.cluster.n_clusters: {k} clusters of the {n} Gaussians of "
+                                  f"content '{name}'")
