@@ -1,4 +1,4 @@
-"""Are the metrics able to see the style? Controls for every metric (issue #12).
+"""Are the metrics able to see the style? Controls for every metric.
 
     python benchmarks/metrics_validation.py [--pairs ant:pebbles ant:grass ...] [--seeds 5] [--full]
 

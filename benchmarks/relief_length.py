@@ -8,7 +8,7 @@ patches of each procedural style (seeds 0..3, 30k Gaussians, and seed 0 at 10k),
 copies (``results/scenes/<style>_trained/style.ply``, cleaned, where the workflow made them) and the
 shared fruit capture (``../shared/data/real_3dgs``, cleaned by ``surface.clean_style``, where present).
 Each is read by the rule now (the autocorrelation's 0.05 crossing over 0.92, at least twice the
-interquartile range of the top heights) and by the zero crossing used before session 21, in the same
+interquartile range of the top heights) and by the plain zero crossing, in the same
 run. Writes the CSV, and prints per style the spread over seeds (max / min) and each trained copy's
 L over its source's (seed 0).
 """
@@ -27,7 +27,7 @@ from common import OUT, ROOT, write_rows  # noqa: E402
 STYLES = ("pebbles", "stones", "grass", "wicker")
 
 
-# registration.relief as before session 21: the first zero crossing, no height bound
+# the plain rule: the first zero crossing, no height bound
 RULES = {"now": {}, "zero_crossing": {"level": 0.0, "level_ratio": 1.0, "height_factor": 0.0}}
 
 

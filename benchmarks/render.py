@@ -56,11 +56,11 @@ def worker(backend: str, n: int, size: int, repeats: int, mesh: str, scene_ply: 
     from wast3d.procedural import content_scene
     try:
         from wast3d.rasterizer import bin_tiles, composite_native, project, rasterize
-    except ImportError:  # a revision from before the module's rename (rendering.py, session 19)
+    except ImportError:  # an older revision named the module rendering.py
         from wast3d.rendering import bin_tiles, composite_native, project, rasterize
     try:
         from wast3d.cameras import fit_orbit
-    except ImportError:  # a revision from before session 19 kept the camera rigs in render.py
+    except ImportError:  # an older revision kept the camera rigs in render.py
         from wast3d.render import fit_orbit
 
     label = backend

@@ -1,4 +1,4 @@
-"""Content fidelity against style fidelity against run time (issue #12): the pipeline's own "error
+"""Content fidelity against style fidelity against run time: the pipeline's own "error
 against run time".
 
     python benchmarks/style_tradeoff.py [--pairs ant:pebbles ...] [--variants NAME ...] [--seeds 1]

@@ -53,3 +53,35 @@ def test_every_relative_markdown_link_resolves():
               if not (f.parent / t).exists()]
     assert broken == []
     assert markdown_links("[a](docs/x.md#y) ![p](img.png) [u](https://x.org) [h](#top)") == ["docs/x.md", "img.png"]
+
+
+# How the project was made lives in git and the closing notes, never in its files: no numbered work
+# session, no ticket number, no "since <date>". The patterns are built from parts so that this file
+# does not match itself.
+HISTORY = re.compile("|".join([
+    r"\b" + "sess" + r"ions? \d+",
+    r"\b" + "iss" + r"ues? #?\d+",
+    r"(?<![\w/&])#\d{1,4}\b(?![0-9a-fA-F])",
+    r"\b" + "si" + r"nce (?:\d{4}-\d\d-\d\d|" + "sess" + "ion)",
+]), re.I)
+TEXT = (".py", ".smk", ".yaml", ".yml", ".md", ".rst", ".sh", ".toml", ".txt", ".cfg", ".c", ".h", ".in", "")
+
+
+def project_files() -> list[Path]:
+    """The files a clone holds (tracked, and new ones not ignored), as git lists them."""
+    import subprocess
+
+    out = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True, text=True,
+                         check=True).stdout.split("\n")
+    return [ROOT / f for f in out if f and (ROOT / f).is_file() and (ROOT / f).suffix in TEXT]
+
+
+def test_no_work_history_in_the_project():
+    found = [f"{p.relative_to(ROOT)}:{i}: {m.group(0)}" for p in project_files()
+             for i, line in enumerate(p.read_text(errors="replace").splitlines(), 1) for m in HISTORY.finditer(line)]
+    assert found == [], "\n".join(found[:40])
+    for text in ("as measured in " + "sess" + "ion 12", "see " + "iss" + "ue #23", "(#" + "14)",
+                 "the default " + "si" + "nce 2026-12-01"):
+        assert HISTORY.search(text), text
+    for text in ("colour #ff0000", "a session of Python", "github.com/jeanfeydy/geomloss/issues/51"):
+        assert not HISTORY.search(text), text

@@ -531,7 +531,7 @@ def test_table_row_specs():
             parse_spec(bad, ("EXPERIMENT",))
 
 
-# ---- relief, texture and coverage (issue #12) ---------------------------------------------------
+# ---- relief, texture and coverage ---------------------------------------------------
 
 
 def test_relief_w1_zero_for_identical_and_orders_floor_below_a_flat_sheet():

@@ -582,7 +582,7 @@ def test_recolouring_spares_what_the_renders_show():
     """shown_limit: on a white layer with a dark square on top (a real capture's lettering), the white
     Gaussians round the square, whose nearest neighbours are mostly the square's, keep their colour
     because the renders show it; without the second test they turn dark (the smear seen on the fruit
-    capture, session 19). Magenta specks under the layer (a trained speck: its colour the blending hid)
+    capture). Magenta specks under the layer (a trained speck: its colour the blending hid)
     are recoloured either way. shown_colours reads the square's core as dark and the specks as white."""
     from wast3d.surface import recolour_outliers, shown_colours
 

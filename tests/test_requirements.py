@@ -1,4 +1,4 @@
-"""The constraints and dependencies install on any machine (issue #11: a pinned local wheel path)."""
+"""The constraints and dependencies install on any machine: no pinned local wheel path, URL or VCS."""
 
 import subprocess
 import sys

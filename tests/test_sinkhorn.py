@@ -118,7 +118,7 @@ def test_identical_and_duplicated_clouds(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_single_points(backend):
-    """geomloss issues #51/#74: a single point (diameter 0) gave NaN."""
+    """A single point (diameter 0) gave NaN in geomloss (github.com/jeanfeydy/geomloss/issues/51, /74)."""
     cfg = SinkhornConfig(blur=0.05, backend=backend)
     p = torch.tensor([[0.2, 0.3, 0.4]], dtype=D64)
     r = finite(sinkhorn(p, p.clone(), cfg, grad_x=True))
@@ -152,7 +152,7 @@ def test_float32_matches_float64(backend):
 
 
 def test_scaling_05_vs_09_and_negative_values():
-    """geomloss #24/#25: scaling 0.5 has an error floor (and was seen to give S < 0) on nearby clouds;
+    """geomloss (github.com/jeanfeydy/geomloss/issues/24, /25): scaling 0.5 has an error floor (and was seen to give S < 0) on nearby clouds;
     extra iterations at the final eps, or scaling 0.9, reduce it."""
     x, _ = clouds(400, 400, shift=0.0)
     y = x + 0.01 * torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=D64)
@@ -203,7 +203,7 @@ def test_autograd_wrapper():
     assert torch.allclose(y.grad, sinkhorn(x, y.detach(), SinkhornConfig(blur=0.1)).grad_y)
 
 
-# ---- the solver as stage 5 uses it: warm starts along an optimization, blurs 0.01 .. 1 (issue #12) ----
+# ---- the solver as stage 5 uses it: warm starts along an optimization, blurs 0.01 .. 1 ----
 
 
 def stylize_trajectory(blur, steps=12, optimizer="adam", **kw):

@@ -181,8 +181,7 @@ def local_thickness(points: np.ndarray, at: np.ndarray, k: int = 16, reach: floa
     the distance to the nearest sample within 3 h of that line and farther than 3 h (h: the samples'
     median nearest-neighbour distance): through a leg, its diameter. inf where no sample lies on the
     line within ``reach`` of the sample's diameter (an open sheet). Measured, not used by a stage: where
-    the content is thinner than a style element, a whole element widens it (docs/measurements.md,
-    session 37)."""
+    the content is thinner than a style element, a whole element widens it (benchmarks/element_copies.py --thickness)."""
     tree = kdtree(points)
     h = float(np.median(tree.query(points, 2)[0][:, 1]))
     normals = local_normals(torch.from_numpy(points), torch.from_numpy(at), k).numpy()

@@ -276,12 +276,12 @@ class Relief:
 
 
 # The level the autocorrelation profile crosses for the relief length, and the ratio of that crossing to
-# the zero crossing on packed elements (docs/measurements.md, session 21): a profile that hovers at
+# the zero crossing on packed elements (benchmarks/relief_length.py): a profile that hovers at
 # +-0.01-0.04 (a field of independent blades, one patch of pebbles) crosses zero where its noise does.
 RELIEF_LEVEL = 0.05
 RELIEF_LEVEL_RATIO = 0.92
 # A steep element (a blade) is longer up than across: its length is at least this many interquartile
-# ranges of the top heights (2.0: the demo's grass keeps the length 0.33 it was tuned at, session 21).
+# ranges of the top heights (2.0: the demo's grass keeps the length 0.33 it was tuned at).
 RELIEF_HEIGHT_FACTOR = 2.0
 
 
@@ -322,7 +322,7 @@ def relief_basins(style: torch.Tensor, up, length: float, cells: int = 8, smooth
     (:func:`wast3d.stylize.style_parts`), a basin follows its element whatever its size: on the
     demo's trained stones (elements 0.83-0.88 L across) 19 basins for 14 stones, the median stone with
     99.2 % of its Gaussians in one (k-means parts of 0.8 L: 73 %); on the trained pebbles 58 basins
-    for 60 pebbles, 97.6 % (94 %) (docs/measurements.md, session 20). Its scale is L's: where L is
+    for 60 pebbles, 97.6 % (94 %) (benchmarks/dome_share.py). Its scale is L's: where L is
     off, basins merge elements."""
     from scipy import ndimage
 
@@ -362,7 +362,7 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z", level:
     """The style's relief (:class:`Relief`). style: [M, 3] (a patch: ground with elements on it) -> its
     relief length L, read from the radial autocorrelation of its top-surface height field (below), and
     the RMS height h of that field, both in its units. ``level`` 0, ``level_ratio`` 1 and
-    ``height_factor`` 0 give the zero crossing used before session 21 (benchmarks/relief_length.py).
+    ``height_factor`` 0 give the plain zero crossing, which noise moves (benchmarks/relief_length.py).
 
     The patch's plane is its two largest principal axes, its normal the third, oriented to the patch's
     up (``up``, :func:`patch_frame`); on a ``grid`` x ``grid`` raster of the

@@ -460,7 +460,7 @@ def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | Non
     and at half an L they stay whole (0.89), while half an L on the grass moves it in plates that leave
     the guitar capture's shape (coarse 1.18 -> 1.67). Why the cap: on the fruit capture's sparse label
     the 16th nearest lies at 1.21 L, and there the clusters move as plates (coarse 4.69; 1.69 at the
-    cap; docs/measurements.md, session 35)."""
+    cap)."""
     from .registration import relief
 
     if not (cfg.smooth_passes and cfg.smooth_radius > 0):

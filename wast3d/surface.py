@@ -65,7 +65,7 @@ median instead, every position and label staying, where its colour also lies far
 test alone cleans the trained demo styles but smears a real capture whose small features are colour
 (the shared fruit label's dark letters on white turn grey: its white Gaussians' neighbours are the
 letters'); the second spares what the renders show, and a trained speck is what they do not
-(docs/measurements.md, sessions 19 and 26).
+(docs/method.md, stage 2).
 """
 
 from __future__ import annotations
