@@ -78,7 +78,7 @@ def style_relief_chamfer(points: torch.Tensor, margin: float = 0.1, offsets: int
 
 def main() -> None:
     from wast3d.metrics import content_chamfer
-    from wast3d.registration import mean_spacing
+    from wast3d.geometry import mean_spacing
     from wast3d.stylize import StylizeConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

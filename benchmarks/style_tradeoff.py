@@ -108,7 +108,7 @@ def main() -> None:
     from wast3d.image_metrics import coverage
     from wast3d.metrics import content_chamfer
     from wast3d.ply import write_ply
-    from wast3d.registration import mean_spacing
+    from wast3d.geometry import mean_spacing
     from wast3d.stylize import StylizeConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -621,7 +621,7 @@ def test_valid_metrics_order_floor_positive_negative(tmp_path):
 
     content = make_scene("content", "ant", 4000)
     style, other = make_scene("style", "pebbles", 6000, seed=0), make_scene("style", "pebbles", 6000, seed=1)
-    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=400, flatness=0))[0]).long()
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(span=0, coherence=0, target_cluster_size=400, flatness=0))[0]).long()
     reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=4, iterations=20,
                                                                            refine_iterations=30))
     off, idx = select_footprint(reg.apply(content.means.double(), labels), labels, style.means.double(), 1.0,

@@ -137,15 +137,15 @@ def test_kmeans_deterministic_and_sizes():
     g = torch.Generator().manual_seed(0)
     pts = torch.rand(3000, 3, generator=g)
     rgb = torch.rand(3000, 3, generator=g)
-    cfg = ClusterConfig(target_cluster_size=300, seed=5, flatness=0)
+    cfg = ClusterConfig(span=0, coherence=0, target_cluster_size=300, seed=5, flatness=0)
     l1, c1, info = kmeans(pts, rgb, cfg)
     l2, c2, _ = kmeans(pts, rgb, cfg)
     assert np.array_equal(l1, l2) and np.allclose(c1, c2)
     assert info["clusters"] == 10 == len(c1) and set(np.unique(l1)) == set(range(10))
-    l3, _, _ = kmeans(pts, rgb, ClusterConfig(target_cluster_size=300, seed=6, flatness=0))
+    l3, _, _ = kmeans(pts, rgb, ClusterConfig(span=0, coherence=0, target_cluster_size=300, seed=6, flatness=0))
     assert not np.array_equal(l1, l3)
     assert n_clusters_for(1_000_000, ClusterConfig()) == 400 and n_clusters_for(5, ClusterConfig()) == 1
-    assert n_clusters_for(1000, ClusterConfig(n_clusters=7)) == 7
+    assert n_clusters_for(1000, ClusterConfig(coherence=0, n_clusters=7)) == 7
 
 
 @pytest.mark.filterwarnings("ignore:Number of distinct clusters")  # the coincident points, on purpose
@@ -158,8 +158,8 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
         uv = torch.rand(n, 2, generator=g)
         pts = torch.cat([uv, torch.zeros(n, 1)], 1)
         x = pts.double().numpy()
-        by_count = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0))[0]
-        cfg = ClusterConfig(target_cluster_size=800, flatness=0, span=0.2)
+        by_count = kmeans(pts, torch.zeros_like(pts), ClusterConfig(span=0, coherence=0, target_cluster_size=800, flatness=0))[0]
+        cfg = ClusterConfig(coherence=0, target_cluster_size=800, flatness=0, span=0.2)
         labels, _, info = kmeans(pts, torch.zeros_like(pts), cfg)
         widths.append(np.median(group_diameters(by_count, x)))
         spans.append(np.median(group_diameters(labels, x)) / (2 ** 0.5))  # the square's diameter: its diagonal
@@ -170,14 +170,14 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
     # 1/sqrt(k), so one correction by the square misses; the exponent the fits measure lands within 10 %
     n = 20000
     pts = torch.cat([torch.rand(n, 1, generator=g), 0.1 * torch.rand(n, 1, generator=g), torch.zeros(n, 1)], 1)
-    labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=800, flatness=0, span=0.3))
+    labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(coherence=0, target_cluster_size=800, flatness=0, span=0.3))
     D = float(torch.tensor([1.0, 0.1]).norm())
     fits = info["span"]["fits"]
     assert len(fits) >= 3 and abs(fits[1]["diameter"] / D - 0.3) > 0.1 * 0.3
     assert np.median(group_diameters(labels, pts.double().numpy())) / D == pytest.approx(0.3, rel=0.1)
     # clusters without a width (one point each, or coincident points) keep their count
     for pts, size in ((torch.rand(3, 3, generator=g), 1), (torch.zeros(100, 3), 10)):
-        labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=size, flatness=0, span=0.1))
+        labels, _, info = kmeans(pts, torch.zeros_like(pts), ClusterConfig(coherence=0, target_cluster_size=size, flatness=0, span=0.1))
         assert info["span"]["clusters"] == len(pts) // size and len(info["span"]["fits"]) == 1
     # a cluster's diameter: twice the 90th percentile of its points' distances to its centroid
     t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
@@ -187,7 +187,7 @@ def test_kmeans_span_sizes_clusters_by_width_not_by_count():
 
 def test_kmeans_merges_small_clusters():
     pts = torch.cat([torch.rand(500, 3), torch.tensor([[50.0, 50.0, 50.0]])])  # a lone far point
-    labels, cent, info = kmeans(pts, torch.rand(501, 3), ClusterConfig(n_clusters=5, min_size=4, flatness=0))
+    labels, cent, info = kmeans(pts, torch.rand(501, 3), ClusterConfig(coherence=0, n_clusters=5, min_size=4, flatness=0))
     assert info["merged_small_clusters"] >= 1
     assert np.bincount(labels).min() >= 4 and len(cent) == labels.max() + 1
 
@@ -750,7 +750,7 @@ def test_outward_normals_and_style_up():
     th = torch.rand(6000, generator=g, dtype=D64) * 2 * torch.pi
     tube = torch.stack([torch.rand(6000, generator=g, dtype=D64) * 4 - 2, 0.3 * th.cos(), 0.3 * th.sin()], 1)
     for pts in (content_scene("sphere", 4000).means.double(), tube):
-        labels = torch.from_numpy(kmeans(pts, torch.zeros_like(pts), ClusterConfig(target_cluster_size=200, flatness=0))[0]).long()
+        labels = torch.from_numpy(kmeans(pts, torch.zeros_like(pts), ClusterConfig(span=0, coherence=0, target_cluster_size=200, flatness=0))[0]).long()
         K = int(labels.max()) + 1
         mu = _segment_mean(pts, labels, K)
         radial = mu.clone()
@@ -779,7 +779,7 @@ def test_registration_puts_the_elements_on_the_outside():
     from wast3d.procedural import content_scene, style_scene
 
     c = content_scene("sphere", 3000).means.double()
-    labels = torch.from_numpy(kmeans(c, torch.zeros_like(c), ClusterConfig(target_cluster_size=300, flatness=0))[0]).long()
+    labels = torch.from_numpy(kmeans(c, torch.zeros_like(c), ClusterConfig(span=0, coherence=0, target_cluster_size=300, flatness=0))[0]).long()
     st = style_scene("pebbles", 8000).means.double()
     reg = register(c, labels, st, RegistrationConfig(landings=1, yaws=4))
     K = len(reg.R)
@@ -836,7 +836,7 @@ def test_wrapped_clusters_are_split_until_flat():
     same, _ = split_wrapped(labels, normals, ClusterConfig(flatness=0.5, min_split=1500))
     assert (same == labels).all()
     with pytest.raises(ValueError, match="outward normal"):
-        kmeans(torch.rand(50, 3), torch.rand(50, 3), ClusterConfig(n_clusters=2, flatness=0.5))
+        kmeans(torch.rand(50, 3), torch.rand(50, 3), ClusterConfig(coherence=0, n_clusters=2, flatness=0.5))
 
 
 def test_registration_uses_the_given_outward_normals():
@@ -924,7 +924,7 @@ def test_a_thinned_selection_reaches_stylize_enlarged():
 
     content = make_scene("content", "ant", 600)
     style = make_scene("style", "pebbles", 12000, seed=0)
-    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(span=0, coherence=0, target_cluster_size=150, flatness=0))[0]).long()
     reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
                                                                            refine_iterations=5))
     mapped = reg.apply(content.means.double(), labels)
@@ -962,7 +962,7 @@ def test_coherence_makes_interleaved_clusters_contiguous():
     assert (kept == clean).mean() > 0.99 and moved < 0.01
     # k-means on position and a random colour weighted heavily interleaves; coherence makes patches of it
     rgb = torch.rand(4000, 3, generator=g)
-    cfg = ClusterConfig(target_cluster_size=500, flatness=0.0, colour_weight=2.0)
+    cfg = ClusterConfig(span=0, coherence=0, target_cluster_size=500, flatness=0.0, colour_weight=2.0)
     mixed = kmeans(pts.float(), rgb, cfg)[0]
     patches = kmeans(pts.float(), rgb, replace(cfg, coherence=3))[0]
     assert same(mixed) < 0.5 < 0.8 < same(patches), (same(mixed), same(patches))
@@ -993,7 +993,7 @@ def test_trim_keeps_the_part_copies_over_their_own_cluster():
 
     content = make_scene("content", "ant", 600)
     style = make_scene("style", "pebbles", 6000, seed=0)
-    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(span=0, coherence=0, target_cluster_size=150, flatness=0))[0]).long()
     reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
                                                                            refine_iterations=5))
     sel = select_with(SelectConfig(), reg.apply(content.means.double(), labels), labels, style.means.double(),
@@ -1027,7 +1027,7 @@ def test_complete_makes_each_part_copy_whole_or_drops_it():
 
     content = make_scene("content", "ant", 600)
     style = make_scene("style", "pebbles", 6000, seed=0)
-    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(span=0, coherence=0, target_cluster_size=150, flatness=0))[0]).long()
     reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,
                                                                            refine_iterations=5))
     sel = select_with(SelectConfig(max_per_point=0), reg.apply(content.means.double(), labels), labels, style.means.double(),
@@ -1068,7 +1068,7 @@ def test_smoothing_where_the_parts_are_left_out(caplog):
     from wast3d.stylize import StylizeConfig, stylize
 
     content = make_scene("content", "ant", 600)
-    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=150, flatness=0))[0]).long()
+    labels = torch.from_numpy(kmeans(content.means, content.rgb, ClusterConfig(span=0, coherence=0, target_cluster_size=150, flatness=0))[0]).long()
     for name, smoothed in (("grass", True), ("pebbles", False)):
         style = make_scene("style", name, 6000, seed=0)
         reg = register(content.means, labels, style.means, RegistrationConfig(landings=1, yaws=2, iterations=5,

@@ -41,21 +41,22 @@ log = logging.getLogger(__name__)
 class ClusterConfig:
     n_clusters: int = option(0, "number of clusters (0: points / target_cluster_size)", minimum=0,
                               maximum=1_000_000)
-    target_cluster_size: int = option(2500, "points per cluster when n_clusters is 0", minimum=1)
+    target_cluster_size: int = option(800, "points per cluster when n_clusters is 0 (then corrected by span)",
+                                     minimum=1)
     max_clusters: int = option(400, "cap on the derived number of clusters (the paper: 400)", minimum=1,
                                 maximum=1_000_000)
     colour_weight: float = option(0.2, "weight of RGB against positions normalized to the unit ball", minimum=0)
     flatness: float = option(0.5, "split clusters whose mean outward unit normal is shorter than this, in two by their "
                                   "normals, until flat (0: off, the paper)", minimum=0, maximum=1)
-    coherence: int = option(0, "passes of a majority vote among each point's 16 nearest neighbours after k-means and "
+    coherence: int = option(3, "passes of a majority vote among each point's 16 nearest neighbours after k-means and "
                                "the splits, where the clusters interleave (coherence_below): they become contiguous "
                                "patches (k-means on position and colour interleaves them on a textured capture, and a "
                                "split by noisy normals into halves that interleave); 0: off", minimum=0)
-    coherence_below: float = option(1.0, "the vote runs only when fewer than this share of the points' 8 nearest "
+    coherence_below: float = option(0.75, "the vote runs only when fewer than this share of the points' 8 nearest "
                                          "neighbours are in their own cluster (own_share; the guitar's capture 0.56-"
                                          "0.62, the ant, the lego and the floaters at span 0.13: 0.81-0.91)",
                                     minimum=0, maximum=1)
-    span: float = option(0.0, "clusters about this wide, as a fraction of the content's diameter (robust_bounds, "
+    span: float = option(0.092, "clusters about this wide, as a fraction of the content's diameter (robust_bounds, "
                               "as register.element_scale's): the count from target_cluster_size is corrected by "
                               "the median k-means cluster's diameter over this (to the power 2, then the one the "
                               "fits measure), refitted until within 5 %, before the splits (800 points span 0.084 "
@@ -65,6 +66,33 @@ class ClusterConfig:
     min_size: int = option(4, "smaller clusters are merged into their nearest neighbour", minimum=1)
     seed: int = option(0, "k-means seed")
     minibatch_above: int = option(20_000_000, "mini-batch k-means above this many points", minimum=1)
+
+
+@dataclass
+class Clusters:
+    """Stage 3's result: ``labels`` [N] (0..K-1), ``centroids`` [K, 3], each point's outward ``normals``
+    [N, 3] (None when ``flatness`` is 0: no split needed them) and what was done (``info``)."""
+
+    labels: torch.Tensor
+    centroids: np.ndarray
+    normals: torch.Tensor | None
+    info: dict
+
+
+def cluster_content(content, cfg: ClusterConfig) -> Clusters:
+    """Stage 3 on a content scene (:class:`~wast3d.gaussians.GaussianScene`): :func:`kmeans` on its means
+    and colours, with its outward normals (:func:`wast3d.surface.outward_normals`) where ``flatness`` splits
+    wrapped clusters."""
+    normals, decided = None, None
+    if cfg.flatness > 0:
+        from .surface import outward_normals
+
+        normals, decided = outward_normals(content)
+        normals = normals.float()
+    labels, cent, info = kmeans(content.means, content.rgb, cfg, normals)
+    if decided is not None:
+        info["normals_decided_by_a_view"] = float(decided.double().mean())
+    return Clusters(torch.from_numpy(labels).long(), cent, normals, info)
 
 
 def n_clusters_for(n_points: int, cfg: ClusterConfig, count: float | None = None) -> int:

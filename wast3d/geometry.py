@@ -194,3 +194,14 @@ def local_thickness(points: np.ndarray, at: np.ndarray, k: int = 16, reach: floa
         if hit.any():
             out[i] = np.abs(t[hit]).min()
     return out
+
+
+def mean_spacing(points: torch.Tensor, max_points: int = 200_000, seed: int = 0) -> float:
+    """Mean distance to the nearest other point (on a random subsample of ``max_points``)."""
+    if len(points) < 2:
+        return 1.0
+    if len(points) > max_points:
+        g = torch.Generator().manual_seed(seed)
+        points = points[torch.randperm(len(points), generator=g)[:max_points]]
+    d, _ = knn(points, points, 1, exclude_self=True)
+    return max(float(d.mean()), 1e-12)

@@ -79,27 +79,19 @@ def _finish_style(out, scene, cfg, report: dict):
 
 
 def run_cluster(*, content: Path, out_npz: Path, params: dict, out_picture: Path | None = None) -> None:
-    from .clustering import ClusterConfig, kmeans
+    from .clustering import ClusterConfig, cluster_content
 
     cfg = make_config(ClusterConfig, params, "cluster")
     content = read_ply(content)
-    normals = None
-    if cfg.flatness > 0:  # the split of wrapped clusters needs each point's outward normal
-        from .surface import outward_normals
-
-        normals, decided = outward_normals(content)
-        normals = normals.float()
-    labels, cent, info = kmeans(content.means, content.rgb, cfg, normals)
-    extra = {}
-    if normals is not None:
-        info["normals_decided_by_a_view"] = float(decided.double().mean())
-        extra["normals"] = normals.numpy()
-    save_npz(out_npz, labels=labels, centroids=cent, sizes=np.bincount(labels), **extra)
-    write_json(Path(out_npz).with_suffix(".json"), info)
+    cl = cluster_content(content, cfg)
+    labels = cl.labels.numpy()
+    extra = {} if cl.normals is None else {"normals": cl.normals.numpy()}
+    save_npz(out_npz, labels=labels, centroids=cl.centroids, sizes=np.bincount(labels), **extra)
+    write_json(Path(out_npz).with_suffix(".json"), cl.info)
     if out_picture:
         from .figures import clusters_picture
 
-        clusters_picture(content.means.numpy(), labels, out_picture, f"{info['clusters']} clusters")
+        clusters_picture(content.means.numpy(), labels, out_picture, f"{cl.info['clusters']} clusters")
 
 
 def _clusters(path: Path, n: int) -> dict[str, np.ndarray]:
@@ -163,15 +155,13 @@ def load_registration(path: Path):
 
 
 def run_select(*, content: Path, clusters: Path, style: Path, registration: Path, out_npz: Path, params: dict) -> None:
-    from .selection import SelectConfig, select_with
+    from .selection import SelectConfig, select_style
 
     cfg = make_config(SelectConfig, params, "select")
     k = cfg.k
     content, style = read_ply(content), read_ply(style)
     labels = _labels(clusters, len(content))
-    reg = load_registration(registration)
-    sel = select_with(cfg, reg.apply(content.means.double(), labels), labels, style.means.double(),
-                      reg.style_spacing, reg.apply_covariances(content.covariances.double(), labels))
+    sel = select_style(cfg, content, labels, style, load_registration(registration))
     sizes = sel.sizes.numpy()
     if (sizes == 0).any():
         log.warning("select: %d clusters got no style Gaussians (they are skipped by stylize)", int((sizes == 0).sum()))
@@ -230,19 +220,17 @@ def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Pat
 
 
 def run_rescale(*, stylized: Path, stylize_npz: Path, out_ply: Path, params: dict) -> None:
-    from .rescale import RescaleConfig, readjust_scales
+    from .rescale import RescaleConfig, rescale
 
     cfg = make_config(RescaleConfig, params, "rescale")
     scene = read_ply(stylized)
     d = load_npz(stylize_npz, required=("labels", "before_means"))
-    if not cfg.enabled:
+    out, ratio = rescale(scene, torch.from_numpy(d["before_means"]), torch.from_numpy(d["labels"]), cfg)
+    write_ply(out_ply, out)
+    if ratio is None:
         log.info("scale readjustment disabled: the stylized scene is passed through")
-        write_ply(out_ply, scene)
         write_json(Path(out_ply).with_suffix(".json"), {"skipped": True, "reason": "rescale.enabled is false"})
         return
-    out, ratio = readjust_scales(scene, torch.from_numpy(d["before_means"]), torch.from_numpy(d["labels"]),
-                                 cfg.k, cfg.bound)
-    write_ply(out_ply, out)
     write_json(Path(out_ply).with_suffix(".json"), {
         "ratio_quantiles": {q: float(torch.quantile(ratio, q)) for q in (0.05, 0.5, 0.95)},
         "at_bound": float(((ratio <= 1 / cfg.bound + 1e-9) | (ratio >= cfg.bound - 1e-9)).double().mean())})

@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from .gaussians import quat_to_rotmat
-from .geometry import KnnIndex, frame_from_normal, kabsch, knn, local_normals
+from .geometry import KnnIndex, frame_from_normal, kabsch, knn, local_normals, mean_spacing
 from .options import checked, option
 
 log = logging.getLogger(__name__)
@@ -167,17 +167,6 @@ def element_size_report(reg: Registration, scale_range: float) -> dict:
     return {"median": float(f.median()), "p10": float(torch.quantile(f, 0.1)), "p90": float(torch.quantile(f, 0.9)),
             "clusters_at_scale_bound": float(at.any(dim=1).double().mean()),
             "units": "the elements' size on the content over the size s0 asks (1: as asked)"}
-
-
-def mean_spacing(points: torch.Tensor, max_points: int = 200_000, seed: int = 0) -> float:
-    """Mean distance to the nearest other point (on a random subsample of ``max_points``)."""
-    if len(points) < 2:
-        return 1.0
-    if len(points) > max_points:
-        g = torch.Generator().manual_seed(seed)
-        points = points[torch.randperm(len(points), generator=g)[:max_points]]
-    d, _ = knn(points, points, 1, exclude_self=True)
-    return max(float(d.mean()), 1e-12)
 
 
 

@@ -329,7 +329,7 @@ def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg:
     length of the style covers as many pixels as it does once registration has mapped it onto the
     content, in the turntable fitted to the content in which every result of the pair is rendered: the
     style's elements then have the pixel size they have on a result. Returns (cameras, z)."""
-    from .registration import mean_spacing
+    from .geometry import mean_spacing
 
     _, rs = scene_bounds(style)
     _, rc = scene_bounds(content)

@@ -47,3 +47,11 @@ def readjust_scales(after: GaussianScene, before_means: torch.Tensor, labels: to
         ratio[m] = r.clamp(1.0 / bound, bound)
     out = replace(after, log_scales=after.log_scales + ratio.log().to(after.log_scales)[:, None])
     return out, ratio
+
+
+def rescale(after: GaussianScene, before_means: torch.Tensor, labels: torch.Tensor,
+            cfg: RescaleConfig) -> tuple[GaussianScene, torch.Tensor | None]:
+    """Stage 6 as ``cfg`` asks: :func:`readjust_scales`, or the scene unchanged (ratios None) when disabled."""
+    if not cfg.enabled:
+        return after, None
+    return readjust_scales(after, before_means, labels, cfg.k, cfg.bound)

@@ -243,3 +243,11 @@ def select_with(cfg: SelectConfig, mapped: torch.Tensor, labels: torch.Tensor, s
         offsets, indices = select(mapped, labels, style, cfg.k)
     counts = torch.bincount(labels.long(), minlength=len(offsets) - 1)
     return thin(offsets, indices, counts, style, cfg.max_per_point)
+
+
+def select_style(cfg: SelectConfig, content, labels: torch.Tensor, style, reg) -> Selection:
+    """Stage 4b on scenes: the content's points mapped by the registration ``reg`` (eq. 7) and their
+    covariances, then :func:`select_with` over the style's means."""
+    cm = content.means.double()
+    return select_with(cfg, reg.apply(cm, labels), labels, style.means.double(), reg.style_spacing,
+                       reg.apply_covariances(content.covariances.double(), labels))
