@@ -1,4 +1,5 @@
-"""Helpers shared by the benchmark scripts: peak-memory probes, timing, realistic cluster pairs."""
+"""Helpers shared by the benchmark scripts: peak-memory probes, timing, realistic cluster pairs, whole
+pairs through the stage functions (:class:`Pairs`)."""
 
 from __future__ import annotations
 
@@ -116,39 +117,28 @@ def demo_scene(name: str, seed: int = 0):
     return make_scene("content", name, 20000, seed) if name in CONTENTS else make_scene("style", name, 30000, seed)
 
 
-class PairRunner:
-    """Stages 3-6 on one (content, style) pair with the library's functions, caching k-means and
-    registration (they do not depend on the stylization settings): ``run(k, stylize, bound)`` ->
-    (final scene, seconds of selection + stylization + rescale)."""
+class Pairs:
+    """Stages 3-6 on one (content, style) pair through the stage functions the workflow's rules call
+    (:mod:`wast3d.pair`), each partition (stages 3-4) made once per distinct set of its blocks:
+    ``run(params)`` -> (the result, seconds of selection + stylization + scale readjustment, the loss
+    curves). ``params``: the config's blocks (``cluster``, ``register``, ``select``, ``stylize``,
+    ``rescale``); a block left out takes the method's defaults."""
 
-    def __init__(self, content, style, target_cluster_size: int = 800, reg_scale: float = 0.0):
-        from wast3d.clustering import ClusterConfig, kmeans
-        from wast3d.registration import RegistrationConfig, register
+    def __init__(self, content, style):
+        self.content, self.style, self.partitions = content, style, {}
 
-        self.content, self.style = content, style
-        from wast3d.surface import outward_normals
+    def run(self, params: dict):
+        import json
 
-        normals = outward_normals(content)[0]
-        labels, _, _ = kmeans(content.means, content.rgb, ClusterConfig(target_cluster_size=target_cluster_size), normals)
-        self.labels = torch.from_numpy(labels).long()
-        t = time.perf_counter()
-        self.reg = register(content.means, self.labels, style.means, RegistrationConfig(scale=reg_scale), normals=normals)
-        self.reg_seconds = time.perf_counter() - t
-        self.mapped = self.reg.apply(content.means.double(), self.labels)
+        from wast3d.pair import partition, stylize_partition
 
-    def run(self, k: int, stylize_cfg, bound: float = 2.0, mode: str = "knn", radius: float = 1.0):
-        """``mode``/``radius``: the selection (knn: eq. 8 with ``k``; footprint: see wast3d.selection)."""
-        from wast3d.rescale import readjust_scales
-        from wast3d.selection import SelectConfig, select_with
-        from wast3d.stylize import stylize
-
-        t = time.perf_counter()
-        sel = select_with(SelectConfig(k=k, mode=mode, radius=radius), self.mapped, self.labels,
-                          self.style.means.double(), self.reg.style_spacing,
-                          self.reg.apply_covariances(self.content.covariances.double(), self.labels))
-        res = stylize(self.content, self.labels, self.style, self.reg, sel, stylize_cfg, progress=False)
-        final, _ = readjust_scales(res.scene, res.before_means, res.labels, 8, bound)
-        return final, time.perf_counter() - t, res.curves
+        key = json.dumps({k: params.get(k) for k in ("cluster", "register", "select")}, sort_keys=True)
+        if key not in self.partitions:
+            self.partitions[key] = partition(self.content, self.style, params)
+        part = self.partitions[key]
+        out = stylize_partition(part, self.content, self.style, params)
+        secs = part.seconds["select"] + out.seconds["stylize"] + out.seconds["rescale"]
+        return out.final, secs, out.stylized.curves
 
 
 def render_frames(scene, reference, folder: Path, frames: int = 24, size: int = 256):

@@ -36,7 +36,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, PairRunner, demo_scene, render_frames, style_scores, texture_reference_frames  # noqa: E402
+from common import OUT, Pairs, demo_scene, render_frames, style_scores, texture_reference_frames  # noqa: E402
 
 
 def verdict(floor: float, neg: float, pos: float, spread: float) -> str:
@@ -79,8 +79,6 @@ def style_relief_chamfer(points: torch.Tensor, margin: float = 0.1, offsets: int
 def main() -> None:
     from wast3d.metrics import content_chamfer
     from wast3d.geometry import mean_spacing
-    from wast3d.stylize import StylizeConfig
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"],
                     help="content:style; lego:STYLE once results/scenes/lego/surface.ply exists")
@@ -98,8 +96,8 @@ def main() -> None:
         other = demo_scene("airplane" if cname != "airplane" else "ant").means.double()
         cc0, oc0 = content.means.double().mean(0), other.mean(0)  # the other shape at the content's place and size
         other = (other - oc0) * ((content.means.double() - cc0).norm(dim=1).max() / (other - oc0).norm(dim=1).max()) + cc0
-        positive, _, _ = PairRunner(content, style).run(1, StylizeConfig(iterations=0), mode="footprint",
-                                                        radius=a.radius)
+        positive, _, _ = Pairs(content, style).run({"select": {"mode": "footprint", "radius": a.radius},
+                                                     "stylize": {"iterations": 0}})
         # texture: the style and its copy at the pixel scale of renders fitted to the content (the
         # texture reference), the content and the collage in those renders
         fr = {"style": texture_reference_frames(style, content, tmp / f"{spec}_style"),

@@ -47,35 +47,30 @@ def main() -> None:
     torch.set_flush_denormal(True)
     import pandas as pd
 
-    from wast3d.clustering import ClusterConfig, kmeans
+    from wast3d.clustering import ClusterConfig, cluster_content
     from wast3d.procedural import make_scene
     from wast3d.registration import RegistrationConfig, register
-    from wast3d.selection import select
-    from wast3d.surface import SurfaceConfig, sample_surface
+    from wast3d.selection import SelectConfig, select_style
+    from wast3d.surface import SurfaceConfig, surface_points
 
     style = make_scene("style", a.style, a.style_size, seed=0)
     rows = []
     for n in a.sizes:
         content = content_with_junk(a.content, n)
         with Peak() as p:
-            idx, rep = sample_surface(content, SurfaceConfig(views=24, resolution=200))
-        rows.append({"n": n, "step": "surface", "seconds": p.seconds, "peak_mb": p.mb, "out": len(idx)})
-        c = content.subset(idx)
+            c, _ = surface_points(content, SurfaceConfig(views=24, resolution=200))
+        rows.append({"n": n, "step": "surface", "seconds": p.seconds, "peak_mb": p.mb, "out": len(c)})
         with Peak() as p:
-            from wast3d.surface import outward_normals
-
-            normals = outward_normals(c)[0]  # stage 3 makes them for cluster.flatness
-            labels, _, info = kmeans(c.means, c.rgb, ClusterConfig(n_clusters=a.clusters), normals)
-        rows.append({"n": n, "step": f"kmeans ({info['algorithm']})", "seconds": p.seconds, "peak_mb": p.mb,
-                     "out": info["clusters"]})
-        labels = torch.from_numpy(labels)
+            cl = cluster_content(c, ClusterConfig(n_clusters=a.clusters))
+        rows.append({"n": n, "step": f"kmeans ({cl.info['algorithm']})", "seconds": p.seconds, "peak_mb": p.mb,
+                     "out": cl.info["clusters"]})
         with Peak() as p:
-            reg = register(c.means, labels, style.means, RegistrationConfig(), normals=normals)
+            reg = register(c.means, cl.labels, style.means, RegistrationConfig(), normals=cl.normals)
         rows.append({"n": n, "step": "register", "seconds": p.seconds, "peak_mb": p.mb,
                      "out": float(reg.residual.mean()), "residual_init": float(reg.residual_init.mean())})
         with Peak() as p:
-            off, ind = select(reg.apply(c.means.double(), labels), labels, style.means.double(), 3)
-        rows.append({"n": n, "step": "select", "seconds": p.seconds, "peak_mb": p.mb, "out": len(ind)})
+            sel = select_style(SelectConfig(mode="knn", k=3), c, cl.labels, style, reg)
+        rows.append({"n": n, "step": "select", "seconds": p.seconds, "peak_mb": p.mb, "out": len(sel.indices)})
         for r in rows[-4:]:
             print(r, flush=True)
     df = pd.DataFrame(rows)

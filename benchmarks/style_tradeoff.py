@@ -4,7 +4,7 @@ against run time".
     python benchmarks/style_tradeoff.py [--pairs ant:pebbles ...] [--variants NAME ...] [--seeds 1]
 
 For each (content, style) pair, stages 3-6 run with the library's functions (k-means and registration
-cached per registration scale, benchmarks/common.PairRunner) for every variant below, one setting
+each partition made once: benchmarks/common.Pairs over wast3d.pair, the rules' stage functions) for every variant below, one setting
 changed at a time from ``base`` (and a few from ``footprint``); every result is rendered (24 turntable frames, 256 px, cameras fitted
 to the content) and scored:
 
@@ -39,7 +39,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, PairRunner, demo_scene, render_frames, texture_reference_frames, texture_score  # noqa: E402
+from common import OUT, Pairs, demo_scene, render_frames, texture_reference_frames, texture_score  # noqa: E402
 
 # base: the previous default (eq. 8 kNN selection with k = 3, Adam at lr 0.01, gamma 0.3)
 BASE = {"reg": 1.0, "select": {"mode": "knn", "k": 3},
@@ -109,8 +109,6 @@ def main() -> None:
     from wast3d.metrics import content_chamfer
     from wast3d.ply import write_ply
     from wast3d.geometry import mean_spacing
-    from wast3d.stylize import StylizeConfig
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", nargs="+", default=["ant:pebbles", "ant:grass", "ant:wicker", "ant:stones"],
                     help="content:style; lego:STYLE once results/scenes/lego/surface.ply exists")
@@ -142,7 +140,8 @@ def main() -> None:
         style_frames = render_frames(style, style, tmp / f"{spec}_style")
         reference = texture_reference_frames(style, content, tmp / f"{spec}_texture_reference")
         content_frames = render_frames(content, content, tmp / f"{spec}_content")
-        runners: dict[float, PairRunner] = {}
+        pairs = Pairs(content, style)
+        s0 = mean_spacing(style.means) / h
         sheet = {"style": style_frames[SHEET_FRAME, ..., :3].clone()}
         for name in todo:
             v = VARIANTS[name]
@@ -150,12 +149,9 @@ def main() -> None:
             if v is None:
                 result, secs, curves = content, 0.0, []
             else:
-                if v["reg"] not in runners:
-                    s0 = mean_spacing(style.means) / h
-                    runners[v["reg"]] = PairRunner(content, style, reg_scale=0.0 if v["reg"] == 1.0 else v["reg"] * s0)
-                st = dict(v["stylize"])  # a partial sinkhorn block keeps the stage's defaults
-                result, secs, curves = runners[v["reg"]].run(v["select"].get("k", 1), StylizeConfig(**st), v["bound"],
-                                                            mode=v["select"]["mode"], radius=v["select"].get("radius", 1.0))
+                result, secs, curves = pairs.run({
+                    "register": {"scale": 0.0 if v["reg"] == 1.0 else v["reg"] * s0}, "select": v["select"],
+                    "stylize": v["stylize"], "rescale": {"bound": v["bound"]}})
             shutil.rmtree(tmp / f"{spec}_{name}", ignore_errors=True)  # a re-run variant: never an old render
             frames = render_frames(result, content, tmp / f"{spec}_{name}")
             sheet[name] = frames[SHEET_FRAME, ..., :3].clone()
