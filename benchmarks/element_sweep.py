@@ -96,7 +96,7 @@ def main(argv=None) -> None:
     bench = R / "benchmarks"
     df = pd.DataFrame(rows)
     df.to_csv(bench / f"element_sweep_{a.pair}.csv", index=False)
-    comparison_sheet(cols, bench / f"element_sweep_{a.pair}.png", rows=("closeup_rgb", "closeup_normal"))
+    comparison_sheet(cols, bench / f"element_sweep_{a.pair}.png", tiles=(("closeup_rgb", "close-up"), ("closeup_normal", "close-up normals")))
     print(df[["setting", "element_intact", "element_share_ratio", "coverage", "content_chamfer", "relief_w1",
               "texture_swd", "sinkhorn_seconds"]].to_string(index=False))
 

@@ -106,19 +106,49 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
     return w2c.float()
 
 
+# a scene's up: a world axis by name (a scene's config, registration's style up)
+UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+           "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
+
+
+def up_vector(up) -> torch.Tensor:
+    """[3] unit vector of ``up``: a name of UP_AXES or a direction."""
+    if isinstance(up, str):
+        if up not in UP_AXES:
+            raise ValueError(f"up must be one of {', '.join(UP_AXES)}, got '{up}'")
+        up = UP_AXES[up]
+    u = torch.as_tensor(up, dtype=torch.float64)
+    if u.shape != (3,) or not bool(torch.isfinite(u).all()) or float(u.norm()) == 0:
+        raise ValueError(f"up must be a non-zero 3-vector, got {up}")
+    return u / u.norm()
+
+
+def orbit_frame(up) -> torch.Tensor:
+    """[3, 3] rows e1, e2, u: a right-handed frame whose third axis is ``up`` (:func:`up_vector`); for z up,
+    the world axes x, y, z."""
+    u = up_vector(up)
+    a = torch.tensor([1.0, 0.0, 0.0] if abs(float(u[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=torch.float64)
+    e1 = a - (a @ u) * u
+    e1 = e1 / e1.norm()
+    return torch.stack([e1, torch.linalg.cross(u, e1), u])
+
+
 def orbit_cameras(n: int, radius: float, width: int, height: int, fov_deg: float = 40.0,
                   elevations_deg: tuple[float, ...] = (20.0, 45.0), target=(0.0, 0.0, 0.0),
                   up=(0.0, 0.0, 1.0), phase_deg: float = 0.0) -> list[Camera]:
-    """``n`` cameras on rings around ``target`` (z up), cycling through ``elevations_deg``."""
+    """``n`` cameras on rings around ``target`` about the axis ``up`` (:func:`up_vector`; z by default),
+    cycling through ``elevations_deg`` above the plane normal to it."""
     f = fov_to_focal(math.radians(fov_deg), width)
     cams = []
     t = torch.as_tensor(target, dtype=torch.float64)
+    frame = orbit_frame(up)
     for i in range(n):
         az = math.radians(phase_deg + 360.0 * i / n)
         el = math.radians(elevations_deg[i % len(elevations_deg)])
-        eye = t + radius * torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)],
-                                        dtype=torch.float64)
-        cams.append(Camera(look_at(eye, t, up), f, f, width / 2.0, height / 2.0, width, height, name=f"orbit_{i:03d}"))
+        d = torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
+        eye = t + radius * (d @ frame)
+        cams.append(Camera(look_at(eye, t, frame[2]), f, f, width / 2.0, height / 2.0, width, height,
+                           name=f"orbit_{i:03d}"))
     return cams
 
 
@@ -131,9 +161,10 @@ def scene_bounds(scene: GaussianScene, q: float = 0.005) -> tuple[torch.Tensor, 
 
 
 def fit_orbit(scene: GaussianScene, n: int, width: int, height: int | None = None, fov_deg: float = 40.0,
-              elevations_deg=(25.0, 45.0), margin: float = 0.95, phase_deg: float = 30.0) -> list[Camera]:
-    """``n`` orbit cameras around the scene's centre at a distance that frames it (z up)."""
+              elevations_deg=(25.0, 45.0), margin: float = 0.95, phase_deg: float = 30.0, up="z") -> list[Camera]:
+    """``n`` orbit cameras around the scene's centre, about its ``up`` (:func:`up_vector`), at a distance
+    that frames it."""
     centre, radius = scene_bounds(scene)
     dist = margin * radius / math.sin(math.radians(fov_deg) / 2)
     return orbit_cameras(n, dist, width, height or width, fov_deg, tuple(elevations_deg),
-                         tuple(centre.tolist()), phase_deg=phase_deg)
+                         tuple(centre.tolist()), up=up, phase_deg=phase_deg)

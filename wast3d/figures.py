@@ -135,32 +135,86 @@ def label_image(img: np.ndarray, text: str, height: int = 22) -> np.ndarray:
     return np.concatenate([np.asarray(strip), img[..., :3]], axis=0)
 
 
-SHEET_ROWS = ("key_00_rgb", "key_01_rgb", "closeup_rgb", "closeup_normal", "closeup_depth")
+def subject_box(images: list[np.ndarray], pad: float = 0.06, background: int = 250) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the box every ``images`` [H, W, C] uint8 (one size; white background) draws its
+    subject in (any channel below ``background``), widened by ``pad`` of its size on each side and made
+    square where the image allows: one crop that frames the subject in all of them (a turntable's
+    frames, one view of several methods). The whole image where nothing is drawn."""
+    H, W = images[0].shape[:2]
+    drawn = np.zeros((H, W), bool)
+    for im in images:
+        drawn |= (im[..., :3] < background).any(-1)
+    if not drawn.any():
+        return 0, H, 0, W
+    ys, xs = np.nonzero(drawn)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    side = max(y1 - y0, x1 - x0) * (1 + 2 * pad)
+    cy, cx = (y0 + y1) / 2, (x0 + x1) / 2
+    h, w = min(H, round(side)), min(W, round(side))
+    y0 = int(min(max(0, round(cy - h / 2)), H - h))
+    x0 = int(min(max(0, round(cx - w / 2)), W - w))
+    return y0, y0 + h, x0, x0 + w
 
 
-def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, rows=SHEET_ROWS) -> None:
-    """Side-by-side sheet: one column per (label, render folder), one row per picture name in ``rows``
-    (missing pictures are left white)."""
-    cells = []
-    shape = None
-    for _, folder in columns:
-        for r in rows:
-            p = Path(folder) / f"{r}.png"
-            if p.exists():
-                shape = iio.imread(p).shape[:2]
-                break
-        if shape:
-            break
-    if shape is None:
+def fit_tile(img: np.ndarray, size: int) -> np.ndarray:
+    """``img`` scaled (Lanczos) so that its longer side is ``size`` px, centred on a white ``size`` square."""
+    from PIL import Image
+
+    h, w = img.shape[:2]
+    f = size / max(h, w)
+    im = Image.fromarray(img[..., :3]).resize((max(1, round(w * f)), max(1, round(h * f))), Image.LANCZOS)
+    out = np.full((size, size, 3), 255, np.uint8)
+    y, x = (size - im.height) // 2, (size - im.width) // 2
+    out[y:y + im.height, x:x + im.width] = np.asarray(im)
+    return out
+
+
+def side_label(img: np.ndarray, text: str, width: int = 180) -> np.ndarray:
+    """``img`` with a white strip of ``width`` px at its left holding ``text`` (wrapped)."""
+    import textwrap
+
+    from PIL import Image, ImageDraw
+
+    strip = Image.new("RGB", (width, img.shape[0]), (255, 255, 255))
+    ImageDraw.Draw(strip).multiline_text((6, 8), textwrap.fill(text, 26), fill=(0, 0, 0))
+    return np.concatenate([np.asarray(strip), img[..., :3]], axis=1)
+
+
+SHEET_TILES = (("key_00_rgb", "key view"), ("closeup_rgb", "close-up"), ("closeup_normal", "close-up normals"))
+
+
+def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, tiles=SHEET_TILES, tile: int = 512) -> None:
+    """One row per (label, render folder), one ``tile`` px square per picture of ``tiles`` (name, caption):
+    the key view cropped to the box the subject takes in every row's key view (:func:`subject_box`),
+    the close-ups whole; a picture a folder lacks is left white."""
+    def read(folder, name):
+        p = Path(folder) / f"{name}.png"
+        return iio.imread(p)[..., :3] if p.exists() else None
+
+    if not any(read(f, name) is not None for _, f in columns for name, _ in tiles):
         raise FileNotFoundError("comparison sheet: none of the render folders has pictures")
-    for r in rows:
-        for label, folder in columns:
-            p = Path(folder) / f"{r}.png"
-            img = iio.imread(p)[..., :3] if p.exists() else np.full((*shape, 3), 255, np.uint8)
-            cells.append(label_image(img, f"{label} | {r}"))
-    h = max(c.shape[0] for c in cells)
-    cells = [np.pad(c, ((h - c.shape[0], 0), (0, 0), (0, 0)), constant_values=255) for c in cells]
-    save_png(out, grid(cells, len(columns)))
+    boxes = {}
+    for name, _ in tiles:
+        if name.startswith("key_"):
+            imgs = [im for _, f in columns if (im := read(f, name)) is not None]
+            shapes = {im.shape for im in imgs}
+            boxes[name] = subject_box(imgs) if len(shapes) == 1 else None
+    head = side_label(np.concatenate([label_image(np.full((0, tile, 3), 255, np.uint8), cap) for _, cap in tiles], 1),
+                      "")
+    rows = [head]
+    for label, folder in columns:
+        cells = []
+        for name, _ in tiles:
+            im = read(folder, name)
+            if im is None:
+                cells.append(np.full((tile, tile, 3), 255, np.uint8))
+                continue
+            if boxes.get(name) is not None:
+                y0, y1, x0, x1 = boxes[name]
+                im = im[y0:y1, x0:x1]
+            cells.append(fit_tile(im, tile))
+        rows.append(side_label(np.concatenate(cells, 1), label))
+    save_png(out, np.concatenate(rows, 0))
 
 
 def write_mp4(path: str | Path, frames: np.ndarray, fps: float) -> bool:

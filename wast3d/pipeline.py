@@ -264,14 +264,17 @@ def run_pretrain(*, data: Path, out_ply: Path, out_csv: Path, out_json: Path, pa
 
 
 def run_render(*, scene: Path, reference: Path, out_folder: Path, params: dict, progress: bool = True) -> None:
-    """Turntable, key views and close-up of a scene, with cameras fitted to ``reference``."""
+    """Turntable, key views and close-up of a scene, with cameras fitted to ``reference`` and turning about
+    its up (``params["up"]``: the reference scene's, ``scenes.NAME.up``; z when not given)."""
     from .render import RenderConfig, render_turntable
 
+    params = dict(params)
+    up = params.pop("up", "z")
     cfg = make_config(RenderConfig, params, "render")
     s = read_ply(scene)
     ref = s if Path(reference) == Path(scene) else read_ply(reference)
-    info = render_turntable(s, ref, out_folder, cfg, progress)
-    log.info("render: %s -> %s (%d frames, fragment at pixel %s)", scene, out_folder, info["frames"],
+    info = render_turntable(s, ref, out_folder, cfg, progress, up)
+    log.info("render: %s -> %s (%d frames about up %s, fragment at pixel %s)", scene, out_folder, info["frames"], up,
              info["fragment_pixel"])
 
 
@@ -279,10 +282,12 @@ def run_texture_reference(*, style: Path, content: Path, out_folder: Path, param
                           registration: Path | None = None) -> None:
     """The style's frames at the pixel scale its elements have on renders fitted to the content
     (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
-    ``params``: the render block."""
+    ``params``: the render block, and ``up``: the style scene's up (z when not given)."""
     from .registration import relief_length
     from .render import RenderConfig, render_texture_reference
 
+    params = dict(params)
+    up = params.pop("up", "z")
     cfg = make_config(RenderConfig, params, "render")
     style_ply, style = style, read_ply(style)
     reg = None if registration is None else load_registration(registration)
@@ -293,7 +298,7 @@ def run_texture_reference(*, style: Path, content: Path, out_folder: Path, param
         except ValueError as e:
             log.warning("texture reference: %s: no element length (%s); the coarse Chamfer will not be computed",
                         style_ply, e)
-    info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, s0, length)
+    info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, s0, length, up)
     log.info("texture reference: %s at zoom %.3f (cameras fitted to it, its elements at their size on %s) -> %s",
              style_ply, info["zoom"], content, out_folder)
 

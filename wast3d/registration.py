@@ -55,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .cameras import UP_AXES
 from .gaussians import quat_to_rotmat
 from .geometry import KnnIndex, frame_from_normal, kabsch, knn, local_normals, mean_spacing
 from .options import checked, option
@@ -63,8 +64,6 @@ log = logging.getLogger(__name__)
 
 
 LANDINGS = ("area", "centre")
-UP_AXES = {"z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0), "y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
-            "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
 
 
 @dataclass

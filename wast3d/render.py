@@ -16,7 +16,7 @@ import torch
 
 from .cameras import Camera, fit_orbit, scene_bounds
 from .datasets import write_blender
-from .figures import grid, save_png, to_uint8, write_mp4
+from .figures import grid, save_png, subject_box, to_uint8, write_mp4
 from .gaussians import GaussianScene, shortest_axis
 from .io_utils import atomic_path, write_json
 from .options import checked, option
@@ -92,9 +92,10 @@ class RenderConfig:
         self.background = tuple(self.background)
 
 
-def turntable_cameras(reference: GaussianScene, cfg: RenderConfig) -> list[Camera]:
-    """``cfg.frames`` cameras on one ring around the reference scene (frame 0 at azimuth 30 deg)."""
-    return fit_orbit(reference, cfg.frames, cfg.size, fov_deg=cfg.fov, elevations_deg=(cfg.elevation,))
+def turntable_cameras(reference: GaussianScene, cfg: RenderConfig, up="z") -> list[Camera]:
+    """``cfg.frames`` cameras on one ring around the reference scene, about its ``up`` (frame 0 at azimuth
+    30 deg)."""
+    return fit_orbit(reference, cfg.frames, cfg.size, fov_deg=cfg.fov, elevations_deg=(cfg.elevation,), up=up)
 
 
 def key_indices(cfg: RenderConfig) -> list[int]:
@@ -241,18 +242,20 @@ def element_pieces(scene: GaussianScene, copies: torch.Tensor, cams: list[Camera
 
 
 def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
-                     progress: bool = False) -> dict:
+                     progress: bool = False, up="z") -> dict:
     """Write the turntable and close-up of ``scene`` (cameras from ``reference``) under ``out_dir``:
 
-    ``frames/NNN.png`` (RGBA, straight alpha), ``turntable.gif`` and ``.mp4`` (:func:`write_mp4`),
+    ``frames/NNN.png`` (RGBA, straight alpha: what the metrics read), ``turntable.gif`` and ``.mp4``
+    (:func:`write_mp4`; the frames cropped to the box the subject turns in, :func:`subject_box`),
     ``key_NN_{rgb,depth,normal}.png``,
     ``closeup_{rgb,depth,normal}.png`` and ``render.json`` (cameras, fragment, depth range, settings).
+    The orbit turns about the reference's ``up`` (:func:`~wast3d.cameras.up_vector`).
     """
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
     (out_dir / "frames").mkdir(parents=True, exist_ok=True)
-    cams = turntable_cameras(reference, cfg)
+    cams = turntable_cameras(reference, cfg, up)
     centre, radius = scene_bounds(reference)
     dist = float((cams[0].center.to(centre) - centre).norm())
     near, far = dist - radius, dist + radius
@@ -273,6 +276,8 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
         save_element_frame(scene, cam, out_dir, i)
         gif.append(to_uint8(m.rgb))
     gif = np.stack(gif)
+    y0, y1, x0, x1 = subject_box(list(gif))  # the turntable cropped to where the subject turns
+    gif = np.ascontiguousarray(gif[:, y0:y1, x0:x1])
     with atomic_path(out_dir / "turntable.gif") as tmp:
         iio.imwrite(tmp, gif, extension=".gif", duration=1000.0 / cfg.fps, loop=0)
     write_mp4(out_dir / "turntable.mp4", gif, cfg.fps)
@@ -282,7 +287,7 @@ def render_turntable(scene: GaussianScene, reference: GaussianScene, out_dir: st
     save_png(out_dir / "closeup_depth.png", depth_image(m.depth, m.alpha, near, far))
     save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m.normal, m.alpha)))
     info = {"frames": cfg.frames, "key_frames": keys, "fragment_pixel": list(pixel), "depth_range": [near, far],
-            "normals": cfg.normals, "gaussians": len(scene), "config": asdict(cfg),
+            "normals": cfg.normals, "gaussians": len(scene), "config": asdict(cfg), "up": up,
             "cameras": camera_dicts(cams + [cu])}
     write_json(out_dir / "render.json", info)
     return info
@@ -319,7 +324,7 @@ def straight_rgba(m: Rendering, background) -> torch.Tensor:
 
 
 def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg: RenderConfig,
-                              s0: float | None = None) -> tuple[list[Camera], float]:
+                              s0: float | None = None, up="z") -> tuple[list[Camera], float]:
     """Cameras for the style's *texture reference* (``texture_swd``): the style's turntable, zoomed by
 
         z = R_style / (R_content * s0)
@@ -336,12 +341,13 @@ def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg:
     if s0 is None:
         s0 = mean_spacing(style.means) / mean_spacing(content.means)
     z = rs / (rc * s0)
-    cams = [replace(c, fx=c.fx * z, fy=c.fy * z) for c in turntable_cameras(style, cfg)]
+    cams = [replace(c, fx=c.fx * z, fy=c.fy * z) for c in turntable_cameras(style, cfg, up)]
     return cams, z
 
 
 def render_texture_reference(style: GaussianScene, content: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
-                             progress: bool = False, s0: float | None = None, element_length: float | None = None) -> dict:
+                             progress: bool = False, s0: float | None = None, element_length: float | None = None,
+                             up="z") -> dict:
     """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`,
     ``key_00_rgb.png`` and ``closeup_{rgb,normal}.png`` (the first frame and its close-up, as
     :func:`render_turntable` makes them: the style at the pixel scale of the result's close-up, its
@@ -351,7 +357,7 @@ def render_texture_reference(style: GaussianScene, content: GaussianScene, out_d
 
     out_dir = Path(out_dir)
     (out_dir / "frames").mkdir(parents=True, exist_ok=True)
-    cams, z = texture_reference_cameras(style, content, cfg, s0)
+    cams, z = texture_reference_cameras(style, content, cfg, s0, up)
     for i, cam in enumerate(tqdm(cams, desc="texture reference", disable=not progress)):
         m = rasterize(style, cam, background=cfg.background)
         save_png(out_dir / "frames" / f"{i:03d}.png", to_uint8(straight_rgba(m, cfg.background)))
@@ -363,7 +369,7 @@ def render_texture_reference(style: GaussianScene, content: GaussianScene, out_d
     save_png(out_dir / "closeup_rgb.png", to_uint8(m.rgb))
     save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m.normal, m.alpha)))
     info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "s0": s0, "element_length": element_length,
-            "config": asdict(cfg), "cameras": camera_dicts(cams + [cu])}
+            "config": asdict(cfg), "up": up, "cameras": camera_dicts(cams + [cu])}
     write_json(out_dir / "render.json", info)
     return info
 

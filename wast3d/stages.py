@@ -191,13 +191,13 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
               In("scene", "scene to render (PLY)"),
               In("reference", "scene the cameras are fitted to (PLY; the content, so that every method is seen alike)"),
               Out("folder", "render folder"),
-          ), "wast3d.render:RenderConfig", "evaluation.render", progress=True),
+          ), "wast3d.render:RenderConfig", "evaluation.render", progress=True, passthrough=("up",)),
     Stage("texture-reference", "stage 7: the style rendered at the pixel scale its elements have on the content's "
           "renders (the reference of texture_swd)", "run_texture_reference", (
               _STYLE, In("content", "content scene the renders are fitted to (PLY)"),
               In("registration", "its base scale s0 sets the elements' size (NPZ)", required=False),
               Out("folder", "render folder"),
-          ), "wast3d.render:RenderConfig", "evaluation.render", progress=True),
+          ), "wast3d.render:RenderConfig", "evaluation.render", progress=True, passthrough=("up",)),
     Stage("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
           "run_colour_transfer", (
               In("content", "content scene (PLY)"), _STYLE,

@@ -276,6 +276,53 @@ _CHECK.check_sizes(SCENES, PARTITIONS, USED_SCENES, CONTENTS, _CONFIG_FILES,
                    psutil.virtual_memory().total if workflow.local_exec else None)
 
 
+def up_from_cameras(folder):
+    """The world axis nearest the mean up of a Blender folder's cameras (transforms_train.json: each
+    camera-to-world's second column is its up), or None where the file is not there yet (a folder the
+    workflow renders) or its cameras agree on no axis."""
+    try:
+        with open(os.path.join(folder, "transforms_train.json")) as f:
+            frames = json.load(f)["frames"]
+        up = [sum(float(fr["transform_matrix"][r][1]) for fr in frames) for r in range(3)]
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return None
+    norm = sum(u * u for u in up) ** 0.5
+    if norm < 0.5 * len(frames):  # the cameras look from all sides: no common up
+        return None
+    axis = max(range(3), key=lambda r: abs(up[r]))
+    return ("-" if up[axis] < 0 else "") + "xyz"[axis]
+
+
+def decide_up(name):
+    """(the scene's up axis, why): scenes.NAME.up, or read from the scene (the schema's `up`)."""
+    s = SCENES[name]
+    if s.get("up", "auto") != "auto":
+        return s["up"], "set in the config"
+    if s["source"] == "ply":
+        return "-y", "a 3DGS file: the reference layout (graphdeco's trainer, SuperSplat) is y-down"
+    if s["source"] == "images":
+        up = up_from_cameras(s["path"])
+        return (up, "its training cameras' mean up") if up else ("z", "Blender's convention (no camera file to read yet)")
+    return "z", "generated z-up"
+
+
+SCENE_UP = {name: decide_up(name) for name in USED_SCENES}
+for _name, (_up, _why) in SCENE_UP.items():
+    logger.info(f"scene '{_name}': up {_up} ({_why}); renders turn about it")
+
+
+def scene_up(name):
+    return SCENE_UP[name][0] if name in SCENE_UP else decide_up(name)[0]
+
+
+def render_block(scene):
+    """The render stages' parameters for renders fitted to ``scene``: the evaluation's render block and the
+    scene's up (left out at z, the stages' own default, so that a z-up scene's renders keep their
+    parameters)."""
+    up = scene_up(scene)
+    return {**EVALUATION.get("render", {}), **({"up": up} if up != "z" else {})}
+
+
 def table_experiments(table):
     """'summary' lists the experiments run; a sweep's table lists its variants."""
     return RUN if table in ("summary", config.get("sweep")) else []
@@ -331,6 +378,8 @@ def clip_inputs():
 
 
 SHEET_METHODS = [m for m in TABLE1_METHODS if m != "input"]  # the comparison sheet's and turntable page's methods
+# the first sheet's: the method, the collage (its elements before the flow) and the colour-transfer baseline
+SHEET_MAIN = [m for m in ("default", "selected", "colour_ot") if m in SHEET_METHODS]
 
 
 def sheet_method_renders(w):
@@ -338,10 +387,11 @@ def sheet_method_renders(w):
     return [results("render_pair", content=w.content, style=w.style, method=m) for m in SHEET_METHODS]
 
 
-def sheet_columns(input, reference=True):
+def sheet_columns(input, reference=True, methods=None):
     """LABEL=FOLDER arguments of `wast3d compare` / `wast3d turntables`: content, style, (the style at
-    the result's scale), then Table 1's methods."""
+    the result's scale), then Table 1's methods (those of ``methods`` only, when given)."""
     head = [("content", input.content), ("style", input.style)]
     head += [("style at the result's scale", input.reference)] if reference else []
     return " ".join(shlex.quote(f"{label}={path}") for label, path in
-                    head + [(TABLE1_METHODS[m], p) for m, p in zip(SHEET_METHODS, input.methods)])
+                    head + [(TABLE1_METHODS[m], p) for m, p in zip(SHEET_METHODS, input.methods)
+                            if methods is None or m in methods])

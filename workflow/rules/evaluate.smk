@@ -12,7 +12,7 @@ rule render_method:
         folder=directory(results("render_pair")),
     params:
         exe=WAST3D,
-        cfg=stage_params("render", EVALUATION.get("render", {})),
+        cfg=lambda w: stage_params("render", render_block(w.content)),
         args=stage_args("render"),
     conda:
         "../envs/wast3d.yaml"
@@ -31,7 +31,7 @@ rule render_scene:
         folder=directory(results("render_scene")),
     params:
         exe=WAST3D,
-        cfg=stage_params("render", EVALUATION.get("render", {})),
+        cfg=lambda w: stage_params("render", render_block(w.scene)),
         args=stage_args("render", reference=lambda w: results("scene", scene=w.scene)),  # its own cameras
     conda:
         "../envs/wast3d.yaml"
@@ -52,7 +52,7 @@ rule texture_reference:
         folder=directory(results("texture_reference")),
     params:
         exe=WAST3D,
-        cfg=stage_params("texture-reference", EVALUATION.get("render", {})),
+        cfg=lambda w: stage_params("texture-reference", render_block(w.style)),
         args=stage_args("texture-reference"),
     conda:
         "../envs/wast3d.yaml"
@@ -119,9 +119,15 @@ rule comparison_sheet:
         reference=results("texture_reference"),
         methods=sheet_method_renders,
     output:
-        report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
+        main=report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
+        methods=report(f"{RESULTS}/figures/{{content}}__{{style}}_methods.png", caption="../report/comparison.rst",
+                       category="Figures"),
+    wildcard_constraints:
+        content=constraint(list(SCENES)),
+        style=constraint(list(SCENES)),
     params:
         exe=WAST3D,
+        main=lambda w, input: sheet_columns(input, methods=SHEET_MAIN),
         columns=lambda w, input: sheet_columns(input),
     conda:
         "../envs/wast3d.yaml"
@@ -130,7 +136,8 @@ rule comparison_sheet:
     benchmark:
         f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}.tsv"
     shell:
-        "{params.exe} --threads {threads} compare {output:q} {params.columns} 2> {log:q}"
+        "({params.exe} --threads {threads} compare {output.main:q} {params.main} && "
+        "{params.exe} --threads {threads} compare {output.methods:q} {params.columns}) 2> {log:q}"
 
 
 rule turntable_page:
