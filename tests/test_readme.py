@@ -9,10 +9,17 @@ def test_readme_starts_with_two_commands_and_ci_runs_the_test_one():
     blocks = re.findall(r"```bash\n(.*?)\n```", text, flags=re.S)
     main_cmd, test_cmd = blocks[0].strip(), blocks[1].strip()
     head = text.split("\n\n")
-    assert head[0].startswith("# wast3d") and "```bash" in head[1] and "```bash" in head[2]
+    assert head[0].startswith("# wast3d") and head[1].count(". ") == 0 and head[1].endswith(".")  # one sentence
+    assert "```bash" in head[2] and "```bash" in head[3]
     assert "snakemake" in main_cmd and "pytest" in test_cmd
     ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()
     assert ci[-1].strip() == test_cmd
+
+
+def test_readme_is_the_products_page():
+    """At most 150 lines: what it does, the two commands, your own scenes, what you get, limits; the
+    rest lives in docs/."""
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 150
 
 
 def _fake_bin(tmp_path, uid):
