@@ -358,7 +358,7 @@ def test_render_turntable_artifacts_and_sheet(tmp_path):
     assert info2["cameras"] == info["cameras"]
     comparison_sheet([("a", tmp_path / "a"), ("b", tmp_path / "b")], tmp_path / "sheet.png", tile=64)
     sheet = iio.imread(tmp_path / "sheet.png")
-    assert sheet.shape[1] == 180 + 3 * 64 and sheet.shape[0] == 22 + 2 * 64  # a row per folder, a tile per picture
+    assert sheet.shape[1] == 180 + 3 * 64 and sheet.shape[0] == 30 + 2 * 64  # a row per folder, a tile per picture
     from wast3d.figures import turntable_page, write_mp4
 
     (tmp_path / "b" / "turntable.mp4").unlink()  # a folder without an MP4 shows its GIF

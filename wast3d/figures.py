@@ -126,12 +126,12 @@ def save_png(path: str | Path, img: np.ndarray) -> None:
         iio.imwrite(tmp, img, extension=".png")
 
 
-def label_image(img: np.ndarray, text: str, height: int = 22) -> np.ndarray:
-    """``img`` with a white caption strip of ``height`` px above it."""
-    from PIL import Image, ImageDraw
+def label_image(img: np.ndarray, text: str, height: int = 22, size: int = 11) -> np.ndarray:
+    """``img`` with a white caption strip of ``height`` px above it (``size`` px type)."""
+    from PIL import Image, ImageDraw, ImageFont
 
     strip = Image.new("RGB", (img.shape[1], height), (255, 255, 255))
-    ImageDraw.Draw(strip).text((4, 4), text, fill=(0, 0, 0))
+    ImageDraw.Draw(strip).text((4, (height - size) // 2), text, fill=(0, 0, 0), font=ImageFont.load_default(size=size))
     return np.concatenate([np.asarray(strip), img[..., :3]], axis=0)
 
 
@@ -169,14 +169,15 @@ def fit_tile(img: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def side_label(img: np.ndarray, text: str, width: int = 180) -> np.ndarray:
-    """``img`` with a white strip of ``width`` px at its left holding ``text`` (wrapped)."""
+def side_label(img: np.ndarray, text: str, width: int = 180, size: int = 18) -> np.ndarray:
+    """``img`` with a white strip of ``width`` px at its left holding ``text`` (wrapped, ``size`` px type)."""
     import textwrap
 
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw, ImageFont
 
     strip = Image.new("RGB", (width, img.shape[0]), (255, 255, 255))
-    ImageDraw.Draw(strip).multiline_text((6, 8), textwrap.fill(text, 26), fill=(0, 0, 0))
+    ImageDraw.Draw(strip).multiline_text((8, 10), textwrap.fill(text, max(8, width // (size // 2 + 1))), fill=(0, 0, 0),
+                                         font=ImageFont.load_default(size=size))
     return np.concatenate([np.asarray(strip), img[..., :3]], axis=1)
 
 
@@ -185,22 +186,37 @@ SHEET_TILES = (("key_00_rgb", "key view"), ("closeup_rgb", "close-up"), ("closeu
 
 def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, tiles=SHEET_TILES, tile: int = 512) -> None:
     """One row per (label, render folder), one ``tile`` px square per picture of ``tiles`` (name, caption):
-    the key view cropped to the box the subject takes in every row's key view (:func:`subject_box`),
-    the close-ups whole; a picture a folder lacks is left white."""
+    a key view cropped to the box its subject takes in every row rendered from the same cameras
+    (:func:`subject_box`: the content and the methods share one crop, the style has its own), the
+    close-ups whole; a picture a folder lacks is left white."""
     def read(folder, name):
         p = Path(folder) / f"{name}.png"
         return iio.imread(p)[..., :3] if p.exists() else None
+
+    def rig(folder):  # rows rendered from the same cameras share a crop
+        p = Path(folder) / "render.json"
+        try:
+            import json
+
+            return json.dumps(json.loads(p.read_text())["cameras"][0], sort_keys=True)
+        except (OSError, ValueError, KeyError, IndexError):
+            return str(folder)
 
     if not any(read(f, name) is not None for _, f in columns for name, _ in tiles):
         raise FileNotFoundError("comparison sheet: none of the render folders has pictures")
     boxes = {}
     for name, _ in tiles:
-        if name.startswith("key_"):
-            imgs = [im for _, f in columns if (im := read(f, name)) is not None]
-            shapes = {im.shape for im in imgs}
-            boxes[name] = subject_box(imgs) if len(shapes) == 1 else None
-    head = side_label(np.concatenate([label_image(np.full((0, tile, 3), 255, np.uint8), cap) for _, cap in tiles], 1),
-                      "")
+        if not name.startswith("key_"):
+            continue
+        groups: dict[str, list] = {}
+        for _, f in columns:
+            if (im := read(f, name)) is not None:
+                groups.setdefault(rig(f), []).append(im)
+        for key, imgs in groups.items():
+            if len({im.shape for im in imgs}) == 1:
+                boxes[(name, key)] = subject_box(imgs)
+    head = side_label(np.concatenate([label_image(np.full((0, tile, 3), 255, np.uint8), cap, 30, 18)
+                                      for _, cap in tiles], 1), "")
     rows = [head]
     for label, folder in columns:
         cells = []
@@ -209,8 +225,9 @@ def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, til
             if im is None:
                 cells.append(np.full((tile, tile, 3), 255, np.uint8))
                 continue
-            if boxes.get(name) is not None:
-                y0, y1, x0, x1 = boxes[name]
+            box = boxes.get((name, rig(folder)))
+            if box is not None:
+                y0, y1, x0, x1 = box
                 im = im[y0:y1, x0:x1]
             cells.append(fit_tile(im, tile))
         rows.append(side_label(np.concatenate(cells, 1), label))
