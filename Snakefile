@@ -57,6 +57,6 @@ rule all:
         f"{RESULTS}/tables/{TABLE}.csv",
         [results("render_pair", content=c, style=s, method=e) for c, s in PAIRS for e in RUN],
         f"{RESULTS}/tables/table1.csv",
-        [f"{RESULTS}/figures/{c}__{s}.png" for c, s in TABLE1_PAIRS],
+        [f"{RESULTS}/figures/{c}__{s}{k}.png" for c, s in TABLE1_PAIRS for k in ("", "_methods")],
         [f"{RESULTS}/figures/{c}__{s}_turntables.html" for c, s in TABLE1_PAIRS],
     default_target: True

@@ -2,15 +2,15 @@
 
     python benchmarks/dome_share.py [--seeds 4] [--out results/benchmarks/dome_share.csv]
 
-``stylize.parts_shape: auto`` takes the relief's basins instead of the k-means parts where the median
-basin keeps less than ``parts_dome_cut`` of its Gaussians in one k-means part of ``parts_dome_probe``
+``stylize.parts.shape: auto`` takes the relief's basins instead of the k-means parts where the median
+basin keeps less than ``parts.dome_cut`` of its Gaussians in one k-means part of ``parts.dome_probe``
 relief lengths (whatever ``parts`` is). This reads that share,
 with the stage's own functions and defaults (``stylize.flow_parts``' relief, k-means parts and basins),
 on four patches of the procedural pebbles and stones (seeds 0..N-1, 30k and 8k Gaussians) and on the
-cleaned trained copies the workflow made (``results/scenes/{pebbles,stones}{_trained,_s05,_s20,_s40}/
-style.ply``, where present: config/min_seen.yaml), with what the labels say of each cut: the median
+cleaned trained copies the workflow made (``results/scenes/{pebbles,stones}{_trained,_seen05}/style.ply``,
+where present: config/trained_styles.yaml, studies/style_cleaning), with what the labels say of each cut: the median
 element's share of its Gaussians in one part (``whole``) and the lowest quarter's, for the k-means
-parts (of ``parts`` and of the probe's size), the basins and the one auto chose. Prints the range per
+parts (of ``parts.size`` and of the probe's size), the basins and the one auto chose. Prints the range per
 style family and the gap the threshold must sit in.
 """
 
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import OUT, ROOT, write_rows  # noqa: E402
 
 FAMILIES = ("pebbles", "stones")
-TRAINED = ("_trained", "_s05", "_s20", "_s40")
+TRAINED = ("_trained", "_seen05")
 
 
 def scenes(seeds: int):
@@ -62,7 +62,7 @@ def main() -> None:
     for family, source, seed, s in scenes(a.seeds):
         up = style_up(s.means, "z").tolist()
         rel = relief(s.means, up=up)
-        kmeans = style_parts(s.means, s.rgb, up, cfg.parts * rel.length, cfg.parts_colour)
+        kmeans = style_parts(s.means, s.rgb, up, cfg.parts.size * rel.length, cfg.parts.colour)
         probe = probe_parts(s, up, rel.length, cfg)
         basins = relief_basins(s.means, up, rel.length)
         auto = flow_parts(s, up, cfg)
@@ -76,7 +76,7 @@ def main() -> None:
         rows.append(row)
         print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     df = write_rows(rows, a.out)
-    print(f"\nparts_dome_cut {cfg.parts_dome_cut} at parts_dome_probe {cfg.parts_dome_probe} (parts {cfg.parts}):")
+    print(f"\nparts.dome_cut {cfg.parts.dome_cut} at parts.dome_probe {cfg.parts.dome_probe} (parts.size {cfg.parts.size}):")
     for family in FAMILIES:
         d = df[df.family == family]
         print(f"  {family:8s} dome_share {d.dome_share.min():.3f}-{d.dome_share.max():.3f} over {len(d)} scenes; "

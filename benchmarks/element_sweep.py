@@ -2,7 +2,7 @@
 render, evaluate of wast3d.pipeline), reading the pair's partition artifacts (clusters, registration,
 selection) from a results folder the workflow made, and write every metric of evaluate per setting.
 
-    .venv/bin/python benchmarks/element_sweep.py ant__pebbles --set smooth_passes=0,4,8 [--results results]
+    .venv/bin/python benchmarks/element_sweep.py ant__pebbles --set smoothing.passes=0,4,8 [--results results]
 
 Each setting is one override of the experiment's stylize block (``--experiment``, default ``default``, as
 the config file defines it); the rows also hold the run time of the Sinkhorn stage. Output:
@@ -38,7 +38,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("pair", help="CONTENT__STYLE, as under results/stylize")
     ap.add_argument("--set", required=True,
-                    help="KEY=V1,V2,... (a stylize key, e.g. smooth_passes=0,4, or rescale.KEY, e.g. rescale.bound=1,2)")
+                    help="KEY=V1,V2,... (a stylize key, dotted into its group, e.g. smoothing.passes=0,4, or rescale.KEY, e.g. "
+                         "rescale.bound=1,2)")
     ap.add_argument("--experiment", default="default")
     ap.add_argument("--results", type=Path, default=ROOT / "results")
     ap.add_argument("--config", type=Path, default=ROOT / "config" / "config.yaml")
@@ -68,11 +69,17 @@ def main(argv=None) -> None:
         name = f"{key}={val}"
         d = out / name.replace("=", "_")
         d.mkdir(parents=True, exist_ok=True)
-        stage, _, k = key.rpartition(".")
-        params = {**exp.get("stylize", {}), **({k: val} if stage in ("", "stylize") else {})}
-        rescale = {**exp.get("rescale", {}), **({k: val} if stage == "rescale" else {})}
-        if stage not in ("", "stylize", "rescale"):
-            raise SystemExit(f"--set {key}: only stylize keys or rescale.KEY can be swept here")
+        import copy
+
+        params, rescale = copy.deepcopy(exp.get("stylize", {})), dict(exp.get("rescale", {}))
+        if key.startswith("rescale."):
+            rescale[key.split(".", 1)[1]] = val
+        else:  # a stylize key, or GROUP.KEY of one of its option groups
+            *path, leaf = key.removeprefix("stylize.").split(".")
+            node = params
+            for p in path:
+                node = node.setdefault(p, {})
+            node[leaf] = val
         t = time.perf_counter()
         pipeline.run_stylize(content=content_ply, clusters=clusters, style=style_ply, registration=reg, selection=sel,
                              out_ply=d / "stylized.ply", out_npz=d / "stylize.npz", out_csv=d / "losses.csv",

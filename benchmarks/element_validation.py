@@ -2,7 +2,7 @@
 
 - the collage (registration + selection, no optimization): element_intact 1 by construction;
 - the result (default experiment), and with other k-means and registration seeds (``--seed-experiment``,
-  config/seeds.yaml) for the spread between seeds;
+  studies/seeds: seeds-seed1) for the spread between seeds;
 - confetti (negative): the result's Gaussians shuffled within each cluster, so that every position is
   still on the result but the element copies are torn apart; intact must fall to ~0;
 - the unstylized content and the colour transfer (negatives): element_share 0.

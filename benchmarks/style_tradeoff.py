@@ -41,7 +41,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import OUT, Pairs, demo_scene, render_frames, texture_reference_frames, texture_score  # noqa: E402
 
-# base: the previous default (eq. 8 kNN selection with k = 3, Adam at lr 0.01, gamma 0.3)
+# base: the paper's recipe as we read it (eq. 8 kNN selection with k = 3, Adam at lr 0.01, gamma 0.3)
 BASE = {"reg": 1.0, "select": {"mode": "knn", "k": 3},
         "stylize": {"iterations": 60, "optimizer": "adam", "lr": 0.01, "sinkhorn": {"blur": 0.3, "tol": 1e-3}},
         "bound": 2.0}

@@ -85,3 +85,38 @@ def test_no_work_history_in_the_project():
         assert HISTORY.search(text), text
     for text in ("colour #ff0000", "a session of Python", "github.com/jeanfeydy/geomloss/issues/51"):
         assert not HISTORY.search(text), text
+
+
+def _merge(base: dict, over: dict) -> dict:
+    """Snakemake's merge of config files: mappings merged key by key, anything else replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def test_config_holds_what_a_user_runs_and_every_study_is_valid():
+    """config/ is at most 8 files; each study (studies/NAME/: config.yaml, README.md with its question,
+    command, result and verdict) merged over the configs its first line names passes the workflow's own
+    checks (wast3d/config_check.py: size, finite values, the schema), as do the configs a user runs."""
+    from wast3d.config_check import check_config
+
+    assert len([p for p in (ROOT / "config").iterdir() if p.is_file()]) <= 8
+    schema = yaml.safe_load((ROOT / "workflow" / "schemas" / "config.schema.yaml").read_text())
+    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    for p in sorted((ROOT / "config").glob("*.yaml")):
+        check_config(_merge(base, yaml.safe_load(p.read_text())), schema, [str(p)])
+    studies = sorted(p for p in (ROOT / "studies").iterdir() if p.is_dir())
+    assert len(studies) >= 5
+    for d in studies:
+        text = (d / "config.yaml").read_text()
+        first = text.splitlines()[0]
+        assert first.startswith("# merged over: "), f"{d.name}: the first line names the configs it is merged over"
+        cfg = {}
+        for f in first.removeprefix("# merged over: ").split() + [str((d / "config.yaml").relative_to(ROOT))]:
+            cfg = _merge(cfg, yaml.safe_load((ROOT / f).read_text()))
+        check_config(cfg, schema, [str(d / "config.yaml")])
+        readme = (d / "README.md").read_text()
+        for part in ("**Question.**", "**Command.**", "**Result", "erdict"):
+            assert part in readme, f"studies/{d.name}/README.md lacks {part}"
+        assert f"studies/{d.name}/config.yaml" in readme, f"studies/{d.name}/README.md: its command runs its config"

@@ -119,6 +119,9 @@ def test_metrics_are_zero_for_identical_inputs(pebbles):
         assert m[k] == 0, k
     for k in ("style_patch_sinkhorn", "colour_sinkhorn"):
         assert abs(m[k]) < 1e-6, k
+    # at the default (patches 0) the patch metrics are not computed
+    d = weights_free_metrics(pebbles, pebbles.means, pebbles, MetricsConfig(colour_points=512))
+    assert d["style_patch_chamfer"] is None and d["style_patch_sinkhorn"] is None and d["tilt_w1_deg"] == 0
 
 
 def perturb(scene: GaussianScene, what: str, amount: float, seed=1) -> GaussianScene:

@@ -697,12 +697,12 @@ def test_relief_length_is_the_generators_not_the_seeds():
 
 def test_relief_aspect_tells_compact_elements_from_long_ones():
     """The relief aspect (RMS top height over relief length) that gates the flow's parts: pebbles and
-    stones (domes, boulders) under the default parts_max_aspect, blades and a weave above it, with a
+    stones (domes, boulders) under the default parts.max_aspect, blades and a weave above it, with a
     margin of 1.5x either side; the aspect of a patch scaled 2x is the same."""
     from wast3d.procedural import style_scene
     from wast3d.stylize import StylizeConfig
 
-    limit = StylizeConfig().parts_max_aspect
+    limit = StylizeConfig().parts.max_aspect
     aspect = {name: relief(style_scene(name, 10000).means).aspect for name in ("pebbles", "stones", "grass", "wicker")}
     assert max(aspect["pebbles"], aspect["stones"]) * 1.5 < limit < min(aspect["grass"], aspect["wicker"]) / 1.5, aspect
     a = style_scene("pebbles", 10000).means
@@ -978,7 +978,7 @@ def test_coherence_makes_interleaved_clusters_contiguous():
 
 
 def test_trim_keeps_the_part_copies_over_their_own_cluster():
-    """stylize.trim: a part copy stays where at least ``trim`` of it lies over its cluster's own content
+    """stylize.copies.trim: a part copy stays where at least ``trim`` of it lies over its cluster's own content
     (own_copies); in a collage of the ant the kept Gaussians lie over their own cluster more often than
     the untrimmed footprints', which overlap; trim 0 keeps every selected Gaussian."""
     from wast3d.geometry import knn
@@ -999,7 +999,7 @@ def test_trim_keeps_the_part_copies_over_their_own_cluster():
     sel = select_with(SelectConfig(), reg.apply(content.means.double(), labels), labels, style.means.double(),
                       reg.style_spacing)
     full = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=0), progress=False)
-    trimmed = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=0, trim=0.5), progress=False)
+    trimmed = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=0, copies={"trim": 0.5}), progress=False)
     assert len(full.scene) == int(sel.sizes.sum()) and len(trimmed.scene) < len(full.scene)
 
     def own(out):  # the share of a collage's Gaussians whose nearest content point is in their cluster
@@ -1009,12 +1009,12 @@ def test_trim_keeps_the_part_copies_over_their_own_cluster():
 
 
 def test_complete_makes_each_part_copy_whole_or_drops_it():
-    """stylize.complete: a part copy holding at least ``complete`` of its part becomes the whole part, one
+    """stylize.copies.complete: a part copy holding at least ``complete`` of its part becomes the whole part, one
     holding less than ``drop`` is dropped (part_copies); in a collage of ant x pebbles every part a cluster keeps is
     then whole, and the pebbles' element copies hold more of their pebble than the footprint's cut ones
     (uncapped: a thinned cluster holds a random subset and is left as selected)."""
     from wast3d.procedural import make_scene
-    from wast3d.stylize import StylizeConfig, flow_parts, part_copies, stylize
+    from wast3d.stylize import CopiesConfig, StylizeConfig, flow_parts, part_copies, stylize
 
     part = torch.tensor([0, 0, 0, 0, 1, 1, 2, 2, 2, 2])
     size = torch.bincount(part)
@@ -1034,10 +1034,10 @@ def test_complete_makes_each_part_copy_whole_or_drops_it():
                       reg.style_spacing)
     cfg = StylizeConfig(iterations=0)
     full = stylize(content, labels, style, reg, sel, cfg, progress=False)
-    whole = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5, drop=0.5), progress=False)
-    grown = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5), progress=False)
+    whole = stylize(content, labels, style, reg, sel, replace(cfg, copies=CopiesConfig(complete=0.5, drop=0.5)), progress=False)
+    grown = stylize(content, labels, style, reg, sel, replace(cfg, copies=CopiesConfig(complete=0.5)), progress=False)
     assert len(whole.scene) != len(full.scene) and len(grown.scene) > len(full.scene)  # complete alone only adds
-    upper = stylize(content, labels, style, reg, sel, replace(cfg, complete=0.5, complete_height=0.5), progress=False)
+    upper = stylize(content, labels, style, reg, sel, replace(cfg, copies=CopiesConfig(complete=0.5, complete_height=0.5)), progress=False)
     assert len(full.scene) < len(upper.scene) < len(grown.scene)  # only the upper half of the parts completed
     parts = flow_parts(style, reg.style_up.tolist(), cfg)
     assert parts is not None
@@ -1078,7 +1078,7 @@ def test_smoothing_where_the_parts_are_left_out(caplog):
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="wast3d.stylize"):
             out = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=2), progress=False)
-        free = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=2, smooth_passes=0), progress=False)
+        free = stylize(content, labels, style, reg, sel, StylizeConfig(iterations=2, smoothing={"passes": 0}), progress=False)
         same = torch.equal(out.scene.means, free.scene.means)
         assert same != smoothed, name
         assert ("displacement smoothing within" in caplog.text) == smoothed, name

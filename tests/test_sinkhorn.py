@@ -285,7 +285,7 @@ def test_flow_optimizer_steps_towards_the_transport_target():
     rgb_x, rgb_y = torch.full((200, 3), 0.5, dtype=torch.float64), torch.full((150, 3), 0.5, dtype=torch.float64)
     sk = SinkhornConfig(blur=0.3, tol=1e-6, max_iters=500)
     cfg = StylizeConfig(features="xyz", iterations=1, optimizer="flow", lr=0.3, dtype="float64", sinkhorn=sk,
-                        smooth_passes=0)  # the flow alone
+                        smoothing={"passes": 0})  # the flow alone
     one = stylize_cluster(x, rgb_x, y, rgb_y, cfg)
     from wast3d.stylize import normalize_pair
 
@@ -294,7 +294,7 @@ def test_flow_optimizer_steps_towards_the_transport_target():
     expect = ((y - c) / r - 0.3 * len(y) * res.grad_y) * r + c
     assert torch.allclose(one.positions, expect, atol=1e-9)
     many = stylize_cluster(x, rgb_x, y, rgb_y, StylizeConfig(features="xyz", iterations=30, optimizer="flow", lr=0.3,
-                                                             dtype="float64", sinkhorn=sk, smooth_passes=0))
+                                                             dtype="float64", sinkhorn=sk, smoothing={"passes": 0}))
     assert many.losses[-1] < 0.2 * many.losses[0] and min(many.losses) >= -1e-6 * many.losses[0]
     with pytest.raises(ValueError, match="stylize.optimizer"):
         StylizeConfig(optimizer="sgd")
@@ -337,11 +337,11 @@ def test_displacement_smoothing_along_the_up_keeps_the_rest_of_the_step():
     assert out[:, 2].std() < 0.3 * step[:, 2].std()
     const = torch.ones(200, 3, dtype=torch.float64)
     assert torch.allclose(smooth_displacements(const, nb, 8, u), const)
-    with pytest.raises(ValueError, match="smooth_axis"):
-        StylizeConfig(smooth_axis="sideways")
+    with pytest.raises(ValueError, match="smoothing.axis"):
+        StylizeConfig(smoothing={"axis": "sideways"})
     pair = ClusterPair(pos.float(), torch.rand(200, 3), pos.float() + 0.1, torch.rand(200, 3), 0.3)
     with pytest.raises(ValueError, match="up direction"):
-        stylize_clusters([pair], StylizeConfig(iterations=1, smooth_passes=2, smooth_axis="up"))
+        stylize_clusters([pair], StylizeConfig(iterations=1, smoothing={"passes": 2, "axis": "up"}))
 
 
 def test_transport_masses_per_side():
@@ -397,22 +397,22 @@ def test_parts_move_rigidly_and_follow_colour_edges():
     parts = (y[:, 0] * 3).long().clamp(max=2)
     pr = ClusterPair(torch.rand(200, 3, generator=g) + 0.3, torch.rand(200, 3, generator=g), y, torch.rand(300, 3),
                      0.3, y_part=parts)
-    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts=1.0, parts_motion="translation"))[0]
+    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts={"size": 1.0, "motion": "translation"}))[0]
     moved = res.positions.double() - y.double()
     for p in range(3):
         d = moved[parts == p]
         assert float((d - d[0]).abs().max()) < 1e-5 and float(d[0].norm()) > 1e-3
     with pytest.raises(ValueError, match="parts"):
-        StylizeConfig(parts=-1.0)
-    with pytest.raises(ValueError, match="parts_motion"):
-        StylizeConfig(parts_motion="wobbly")
+        StylizeConfig(parts={"size": -1.0})
+    with pytest.raises(ValueError, match="parts.motion"):
+        StylizeConfig(parts={"motion": "wobbly"})
 
 
 def test_flow_parts_on_gentle_reliefs_only(caplog):
     """The default cuts pebbles into parts (one per basin of the relief to start with) and leaves grass
-    free (its relief aspect is above parts_max_aspect), saying why in the log; started from cells,
+    free (its relief aspect is above parts.max_aspect), saying why in the log; started from cells,
     the parts are about a relief length across; parts 0 is off everywhere and a large
-    parts_max_aspect puts parts on the grass too."""
+    parts.max_aspect puts parts on the grass too."""
     import logging
 
     from wast3d.procedural import style_scene
@@ -429,17 +429,17 @@ def test_flow_parts_on_gentle_reliefs_only(caplog):
     assert part is not None and len(part) == len(pebbles)
     assert len(torch.unique(part)) == len(torch.unique(relief_basins(pebbles.means, "z", L)))
     # from cells: about (patch width / (parts L) + 1)^2 parts (the border cells partly filled), an element's size each
-    part = flow_parts(pebbles, "z", StylizeConfig(parts_start="cells"))
-    n_cells = (float(pebbles.means[:, :2].max() - pebbles.means[:, :2].min()) / (cfg.parts * L) + 1) ** 2
+    part = flow_parts(pebbles, "z", StylizeConfig(parts={"start": "cells"}))
+    n_cells = (float(pebbles.means[:, :2].max() - pebbles.means[:, :2].min()) / (cfg.parts.size * L) + 1) ** 2
     assert 0.5 < len(torch.unique(part)) / n_cells < 1.5
-    assert flow_parts(pebbles, "z", StylizeConfig(parts=0.0)) is None
-    assert flow_parts(grass, "z", StylizeConfig(parts_max_aspect=10.0)) is not None
-    with pytest.raises(ValueError, match="parts_max_aspect"):
-        StylizeConfig(parts_max_aspect=-1.0)
+    assert flow_parts(pebbles, "z", StylizeConfig(parts={"size": 0.0})) is None
+    assert flow_parts(grass, "z", StylizeConfig(parts={"max_aspect": 10.0})) is not None
+    with pytest.raises(ValueError, match="parts.max_aspect"):
+        StylizeConfig(parts={"max_aspect": -1.0})
 
 
 def test_parts_started_from_the_basins_keep_pebbles_whole():
-    """parts_start basins (the default): the k-means parts start one per basin of the relief and move
+    """parts.start basins (the default): the k-means parts start one per basin of the relief and move
     their borders to the colour edges. By the labels of the procedural pebbles (four seeds), the share
     of the element Gaussians in their element's largest part is higher than from cells of the same
     size (measured 0.889 against 0.858 on average; seed 1 is the one where cells do as well)."""
@@ -467,12 +467,12 @@ def test_parts_started_from_the_basins_keep_pebbles_whole():
 
 
 def test_relief_basins_keep_elements_of_any_size_whole():
-    """parts_shape relief: one part per dome of the top surface, bordered by the crevices. On the
+    """parts.shape relief: one part per dome of the top surface, bordered by the crevices. On the
     labelled procedural styles the median element has >= 90 % of its Gaussians in one basin (whole),
     a basin's element Gaussians are >= 85 % of one element on average (elements not merged), and there
     are about as many basins as elements; the stones (elements larger than a relief length) are cut by
     k-means parts of 0.8 L (median < 70 %). A bowl-shaped bend does not change that, and flow_parts
-    returns the basins under parts_shape relief."""
+    returns the basins under parts.shape relief."""
     import numpy as np
 
     from wast3d.procedural import style_scene
@@ -500,15 +500,15 @@ def test_relief_basins_keep_elements_of_any_size_whole():
         if name == "stones":
             assert whole(b.numpy(), el) >= 0.95
             assert whole(style_parts(s.means, s.rgb, "z", 0.8 * L, 3.0).numpy(), el) < 0.7
-            assert torch.equal(flow_parts(s, "z", StylizeConfig(parts_shape="relief")), b)
+            assert torch.equal(flow_parts(s, "z", StylizeConfig(parts={"shape": "relief"})), b)
     with pytest.raises(ValueError, match="relief length"):
         relief_basins(s.means, "z", 0.0)
 
 
 def test_auto_parts_take_the_basins_where_kmeans_cuts_the_domes():
-    """parts_shape auto (the default): dome_share is the median share of a basin's Gaussians in its
+    """parts.shape auto (the default): dome_share is the median share of a basin's Gaussians in its
     largest part (1 for the basins themselves, 0.5 for a cut that halves each basin). On the labelled
-    procedural styles (two seeds) the k-means parts of parts_dome_probe (0.8 L) keep the pebbles'
+    procedural styles (two seeds) the k-means parts of parts.dome_probe (0.8 L) keep the pebbles'
     domes (>= 0.65: flow_parts returns the k-means parts of ``parts`` L) and cut the stones' (< 0.65:
     it returns the basins), the same at parts 1.2 (the decision does not follow the parts' size), and
     the choice is the right one by the labels: the chosen parts keep the median element more whole
@@ -527,35 +527,35 @@ def test_auto_parts_take_the_basins_where_kmeans_cuts_the_domes():
     assert dome_share(b, torch.arange(40) // 5) == 0.5
     assert dome_share(b, b, min_size=11) == 1.0  # no basin that large
     cfg = StylizeConfig()
-    assert cfg.parts_shape == "auto"
+    assert cfg.parts.shape == "auto"
     for name in ("pebbles", "stones"):
         for seed in (0, 1):
             s = style_scene(name, 10000, seed)
             el, L = s.element.numpy(), relief(s.means).length
             basins = relief_basins(s.means, "z", L)
-            kmeans = style_parts(s.means, s.rgb, "z", cfg.parts * L, cfg.parts_colour, start=basins)
-            probe = style_parts(s.means, s.rgb, "z", cfg.parts_dome_probe * L, cfg.parts_colour)
+            kmeans = style_parts(s.means, s.rgb, "z", cfg.parts.size * L, cfg.parts.colour, start=basins)
+            probe = style_parts(s.means, s.rgb, "z", cfg.parts.dome_probe * L, cfg.parts.colour)
             cut = dome_share(basins, probe)
             chosen = flow_parts(s, "z", cfg)
             # the decision is taken by cells of the probe's size, whatever the parts' size and start
             for size in (0.8, 1.2):
                 for start in ("cells", "basins"):
-                    wide = flow_parts(s, "z", StylizeConfig(parts=size, parts_start=start))
+                    wide = flow_parts(s, "z", StylizeConfig(parts={"size": size, "start": start}))
                     assert torch.equal(wide, basins if name == "stones" else style_parts(
-                        s.means, s.rgb, "z", size * L, cfg.parts_colour, start=basins if start == "basins" else None))
+                        s.means, s.rgb, "z", size * L, cfg.parts.colour, start=basins if start == "basins" else None))
             if name == "pebbles":
-                assert cut >= cfg.parts_dome_cut and torch.equal(chosen, kmeans), (seed, cut)
+                assert cut >= cfg.parts.dome_cut and torch.equal(chosen, kmeans), (seed, cut)
                 assert whole(probe.numpy(), el) >= whole(basins.numpy(), el) - 0.02, seed
             else:
-                assert cut < cfg.parts_dome_cut and torch.equal(chosen, basins), (seed, cut)
+                assert cut < cfg.parts.dome_cut and torch.equal(chosen, basins), (seed, cut)
                 assert whole(basins.numpy(), el) > whole(probe.numpy(), el) + 0.2, seed
-    assert torch.equal(flow_parts(s, "z", StylizeConfig(parts_shape="kmeans")), kmeans)
+    assert torch.equal(flow_parts(s, "z", StylizeConfig(parts={"shape": "kmeans"})), kmeans)
     with pytest.raises(ValueError, match="start has"):
         style_parts(s.means, s.rgb, "z", L, start=basins[:-1])
 
 
 def test_rigid_parts_recover_a_turn_and_move_whole():
-    """parts_motion: rigid: a part's step is its Gaussians' best rigid motion (weighted Kabsch): an exact
+    """parts.motion rigid: a part's step is its Gaussians' best rigid motion (weighted Kabsch): an exact
     turn plus shift of one part and a shift of another are reproduced, noise is projected away, and in
     the flow every part keeps its Gaussians' distances to each other."""
     import math
@@ -578,7 +578,7 @@ def test_rigid_parts_recover_a_turn_and_move_whole():
     parts = (yy[:, 0] * 3).long().clamp(max=2)
     pr = ClusterPair(torch.rand(200, 3, generator=g) + 0.3, torch.rand(200, 3, generator=g), yy, torch.rand(300, 3),
                      0.3, y_part=parts)
-    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts=1.0, parts_motion="rigid"))[0]
+    res = stylize_clusters([pr], StylizeConfig(iterations=5, parts={"size": 1.0, "motion": "rigid"}))[0]
     for p in range(3):
         a, b = yy[parts == p].double(), res.positions[parts == p].double()
         assert torch.allclose(torch.cdist(a, a), torch.cdist(b, b), atol=1e-4)
@@ -613,21 +613,21 @@ def test_smoothing_within_a_radius_reaches_as_far_whatever_the_density():
     moved = out.abs().sum(1) > 0
     assert float((sparse[moved] - sparse[0]).norm(dim=1).max()) <= 3 * r + 1e-6
     assert float(out[:, 0].sum()) > 0
-    # the reach in style units: smooth_radius relief lengths; off without passes or radius
+    # the reach in style units: smoothing.radius relief lengths; off without passes or radius
     style = style_pebbles(3000, seed=0)
     L = relief(style.means, up="z").length
-    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4, smooth_radius=0.5)) == pytest.approx(0.5 * L)
-    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=0, smooth_radius=0.5)) is None
-    assert smoothing_reach(style, "z", StylizeConfig(smooth_passes=4, smooth_radius=0.0)) is None
-    with pytest.raises(ValueError, match="smooth_radius"):
-        StylizeConfig(smooth_radius=-1.0)
+    assert smoothing_reach(style, "z", StylizeConfig(smoothing={"passes": 4, "radius": 0.5})) == pytest.approx(0.5 * L)
+    assert smoothing_reach(style, "z", StylizeConfig(smoothing={"passes": 0, "radius": 0.5})) is None
+    assert smoothing_reach(style, "z", StylizeConfig(smoothing={"passes": 4, "radius": 0.0})) is None
+    with pytest.raises(ValueError, match="smoothing.radius"):
+        StylizeConfig(smoothing={"radius": -1.0})
 
 
 def test_smoothing_reach_widens_to_the_kth_nearest_on_a_sparse_style():
-    """smoothing_reach = max(smooth_radius L, min(d_k, smooth_radius_max L)): d_k the median distance to
-    the smooth_neighbours-th nearest (neighbour_distance, known on a grid); a dense style keeps
-    smooth_radius L, the same style thinned 20-fold gets d_k (1.6 L) up to the cap, and
-    smooth_neighbours 0 switches the widening off."""
+    """smoothing_reach = max(radius L, min(d_k, radius_max L)): d_k the median distance to
+    the neighbours-th nearest (neighbour_distance, known on a grid); a dense style keeps
+    radius L, the same style thinned 20-fold gets d_k (1.6 L) up to the cap, and
+    neighbours 0 switches the widening off."""
     from dataclasses import replace
 
     from wast3d.procedural import style_pebbles
@@ -641,16 +641,16 @@ def test_smoothing_reach_widens_to_the_kth_nearest_on_a_sparse_style():
     assert neighbour_distance(grid[:5], 8) == float("inf")
     style = style_pebbles(30000, seed=0)
     L = relief(style.means, up="z").length
-    cfg = StylizeConfig(smooth_radius=0.25, smooth_neighbours=16)
+    cfg = StylizeConfig(smoothing={"radius": 0.25, "neighbours": 16})
     assert neighbour_distance(style.means, 16) < 0.25 * L
     assert smoothing_reach(style, "z", cfg) == pytest.approx(0.25 * L)
     sparse = style.subset(torch.arange(0, len(style.means), 20))
     Ls, d = relief(sparse.means, up="z").length, neighbour_distance(sparse.means, 16)
     assert d > 0.5 * Ls
-    assert smoothing_reach(sparse, "z", replace(cfg, smooth_radius_max=10.0)) == pytest.approx(d)
-    assert smoothing_reach(sparse, "z", replace(cfg, smooth_radius_max=0.5)) == pytest.approx(0.5 * Ls)
-    assert smoothing_reach(sparse, "z", replace(cfg, smooth_radius_max=0.1)) == pytest.approx(0.25 * Ls)
-    assert smoothing_reach(sparse, "z", replace(cfg, smooth_neighbours=0)) == pytest.approx(0.25 * Ls)
+    assert smoothing_reach(sparse, "z", replace(cfg, smoothing=replace(cfg.smoothing, radius_max=10.0))) == pytest.approx(d)
+    assert smoothing_reach(sparse, "z", replace(cfg, smoothing=replace(cfg.smoothing, radius_max=0.5))) == pytest.approx(0.5 * Ls)
+    assert smoothing_reach(sparse, "z", replace(cfg, smoothing=replace(cfg.smoothing, radius_max=0.1))) == pytest.approx(0.25 * Ls)
+    assert smoothing_reach(sparse, "z", replace(cfg, smoothing=replace(cfg.smoothing, neighbours=0))) == pytest.approx(0.25 * Ls)
 
 
 def test_stylize_solver_defaults_live_in_one_dataclass():

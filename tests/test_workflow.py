@@ -263,7 +263,7 @@ def test_whole_dag_artifacts(tiny_run):
 def test_caching_reruns_only_what_a_change_affects(tiny_run):
     base = tiny_config(tiny_run)
     assert jobs(snake(tiny_run, "-n", config=copy.deepcopy(base))) == {}
-    downstream = {"render_method", "evaluate", "comparison_sheet", "turntable_page", "table1", "all"}
+    downstream = {"render_method", "evaluate", "comparison_sheet", "methods_sheet", "turntable_page", "table1", "all"}
     cfg = copy.deepcopy(base)
     cfg["experiments"]["default"]["stylize"]["sinkhorn"] = {"blur": 0.1}
     j = jobs(snake(tiny_run, "-n", config=cfg))

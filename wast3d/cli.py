@@ -393,7 +393,7 @@ def table_command(name: str, help_: str, flag: str, row_help: str, row_fn: str, 
         def run(a):
             from . import tables
 
-            rows = [getattr(tables, row_fn)(a.results, spec) for spec in a.specs]
+            rows = tables.without_empty_metrics([getattr(tables, row_fn)(a.results, spec) for spec in a.specs])
             print(tables.write_table(rows, a.out_csv, a.md, a.html).drop(columns=list(hidden)).to_string(index=False))
 
         return run

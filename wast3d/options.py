@@ -28,6 +28,19 @@ def option(default: Any = dataclasses.MISSING, help: str = "", *, factory=None, 
     return dataclasses.field(default=default, metadata=md)
 
 
+def group(cls, help: str) -> Any:
+    """A dataclass field holding a group of options (a dataclass of its own, its block in the config:
+    ``stylize.parts``); a dict given for it is built into ``cls`` and checked there (:func:`checked`)."""
+    if not help:
+        raise ValueError("group: every group needs its help text")
+    return dataclasses.field(default_factory=cls, metadata={"help": help, "group": cls})
+
+
+def groups(cls) -> dict[str, type]:
+    """``{field: its dataclass}`` of the option groups of dataclass ``cls`` (:func:`group`)."""
+    return {f.name: f.metadata["group"] for f in dataclasses.fields(cls) if "group" in f.metadata}
+
+
 def json_type(annotation: str) -> str | list[str]:
     """The JSON-schema type of a field annotation (a string under ``from __future__ import annotations``)."""
     text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", None) or str(annotation)
@@ -44,6 +57,10 @@ def schema_properties(cls) -> dict[str, dict]:
     out = {}
     for f in dataclasses.fields(cls):
         if "help" not in f.metadata:
+            continue
+        if "group" in f.metadata:
+            out[f.name] = {"type": "object", "additionalProperties": False, "description": f.metadata["help"],
+                           "properties": schema_properties(f.metadata["group"])}
             continue
         extra = json.loads(json.dumps(f.metadata["schema"]))  # tuples (an enum from a constant) as lists
         node = {} if "enum" in extra else {"type": json_type(f.type)}
@@ -91,14 +108,20 @@ def check_options(obj, where: str) -> None:
 
 
 def checked(where: str):
-    """Class decorator, below ``@dataclass``: construction first checks the options
-    (:func:`check_options`, errors named ``where.field``), then runs the class's own ``__post_init__``
-    (checks across fields)."""
+    """Class decorator, below ``@dataclass``: construction first builds its option groups given as dicts
+    (:func:`group`; unknown keys named ``where.group.key``), checks the options (:func:`check_options`,
+    errors named ``where.field``), then runs the class's own ``__post_init__`` (checks across fields)."""
 
     def deco(cls):
         own = cls.__dict__.get("__post_init__")
 
         def __post_init__(self):
+            for name, sub in groups(cls).items():
+                value = getattr(self, name)
+                if isinstance(value, dict):
+                    setattr(self, name, make_config(sub, value, f"{where}.{name}"))
+                elif not dataclasses.is_dataclass(value):
+                    raise ValueError(f"{where}.{name} must be a mapping of its options, got {value!r}")
             check_options(self, where)
             if own is not None:
                 own(self)

@@ -20,12 +20,12 @@ For cluster i, in the registered (style) frame:
   luminance offset per Gaussian, or three RGB offsets), with Adam (``optimizer: adam``) or by the
   Sinkhorn gradient flow (``optimizer: flow``: plain steps along ``-M grad``, i.e. towards each
   point's transport target); the content is fixed;
-- piecewise-rigid flow (``parts``, default on for a style whose relief is gentle, :func:`flow_parts`):
+- piecewise-rigid flow (``parts.size``, default on for a style whose relief is gentle, :func:`flow_parts`):
   the style is cut into parts about an element across, each moving by its Gaussians' best rigid
   motion towards their targets, so an element made of many trained Gaussians moves whole;
-- displacement smoothing (``smooth_passes``, default on where the parts are left out: blades, strands,
-  :func:`smooth_displacements`): each step averaged over the neighbours within ``smooth_radius`` relief
-  lengths (on a sparse style, as far as its ``smooth_neighbours``-th nearest, at most ``smooth_radius_max``:
+- displacement smoothing (``smoothing.passes``, default on where the parts are left out: blades, strands,
+  :func:`smooth_displacements`): each step averaged over the neighbours within ``smoothing.radius`` relief
+  lengths (on a sparse style, as far as its ``smoothing.neighbours``-th nearest, at most ``smoothing.radius_max``:
   :func:`smoothing_reach`),
   16 times, so a blade's Gaussians move together and it still bends with the content.
   Clusters are independent terms of eq. 9 and both optimizers act per coordinate, so optimizing them
@@ -59,7 +59,7 @@ import torch
 from .device import resolve_device
 from .gaussians import SH_C0, GaussianScene, footprint, luminance
 from .geometry import kabsch, knn
-from .options import checked, option
+from .options import checked, group, option
 from .sinkhorn import SinkhornConfig, sinkhorn
 
 log = logging.getLogger(__name__)
@@ -84,6 +84,100 @@ class StylizeSinkhornConfig(SinkhornConfig):
                               exclusiveMinimum=0)
     tol: float = option(1e-3, "iterate at the final eps until the potentials change by <= tol * eps (0: fixed iteration"
                               " counts)", minimum=0)
+
+
+@dataclass
+@checked("stylize.parts")
+class PartsConfig:
+    """The piecewise-rigid flow (:func:`flow_parts`): the style cut into parts about an element across,
+    each moving as one rigid body, on a style whose relief is gentle."""
+
+    size: float = option(1.2, "piecewise-rigid flow: the style cut into parts (k-means on [position / (size relief "
+                              "lengths), colour]: parts about this many relief lengths across), each moving as one, "
+                              "so that elements made of many Gaussians move whole (0: off)", minimum=0)
+    shape: str = option("auto", "how the style is cut into parts: kmeans (parts relief lengths across, on "
+                                "position and colour, started as start says), relief (the watershed basins of its top "
+                                "surface: one part per dome, whatever its size, bordered by the crevices) or "
+                                "auto (kmeans, or relief where parts of one size, dome_probe relief "
+                                "lengths from cells, cut the domes: the median basin keeps less than "
+                                "dome_cut of its Gaussians in one part); size > 0 "
+                                "turns them on", enum=PART_SHAPES)
+    dome_cut: float = option(0.65, "shape auto: the basins replace the k-means parts where the median "
+                                   "basin (of 8 Gaussians or more) keeps less than this share of its Gaussians "
+                                   "in one k-means part (procedural and trained stones 0.48-0.60, pebbles "
+                                   "0.69-0.80)", minimum=0, maximum=1)
+    dome_probe: float = option(0.8, "shape auto: the k-means parts that test the domes are this many "
+                                    "relief lengths across, whatever size is (dome_cut was measured "
+                                    "there; at 1.2 the stones' domes read 0.709 and would get k-means parts)",
+                               exclusiveMinimum=0)
+    start: str = option("basins", "where the k-means parts start: cells (one per occupied cell of size relief "
+                                  "lengths on the patch's plane) or basins (one per basin of the relief, so one "
+                                  "per dome, refined by position and colour: by the labels the procedural "
+                                  "pebbles keep 0.916 of their Gaussians in their largest part against 0.884 from "
+                                  "cells, the 1M pebbles 0.895 against 0.829, the trained pebbles 0.956 against "
+                                  "0.952)", enum=PART_STARTS)
+    colour: float = option(3.0, "the colour's weight in the parts' k-means (features [xyz / part size, "
+                                "colour * rgb]): part borders follow colour edges such as a pebble's rim",
+                                minimum=0)
+    motion: str = option("rigid", "each part's step: the mass-weighted mean of its Gaussians' steps (translation)"
+                                  " or their best rigid motion (rigid: a part also turns to follow a curved "
+                                  "content)", enum=PART_MOTIONS)
+    max_aspect: float = option(0.16, "parts only on a style whose relief aspect (RMS height of its top surface "
+                                     "over its relief length) is at most this: elements about a relief length in "
+                                     "every direction (pebbles, boulders: 0.08-0.13), not blades or a weave (0.26-"
+                                     "0.34), which rigid parts would tear; a large value: parts on "
+                                     "every style", minimum=0)
+
+
+@dataclass
+@checked("stylize.smoothing")
+class SmoothingConfig:
+    """Displacement smoothing (:func:`smooth_displacements`, :func:`smoothing_reach`): each flow step
+    averaged over the style's own neighbours, where the parts are left out (blades, strands)."""
+
+    passes: int = option(16, "passes of the average per step (0: off); elements move as"
+                             " wholes", minimum=0)
+    k: int = option(32, "neighbours (in the style's own positions, same cluster) each "
+                        "step's displacement is averaged over", minimum=1)
+    radius: float = option(0.25, "a pass averages only over the neighbours within this "
+                                 "many style relief lengths (a reach in length, whatever the style's density); "
+                                 "0: over all k neighbours", minimum=0)
+    neighbours: int = option(16, "where the style is so sparse that radius holds "
+                                 "fewer neighbours, the radius widens to the median distance of a Gaussian's "
+                                 "this-many-th nearest, up to radius_max (the trained weave: 0.25 -> 0.5 "
+                                 "relief lengths; every grass keeps 0.25); 0: radius alone", minimum=0)
+    radius_max: float = option(0.5, "neighbours widens the radius to at most this "
+                                    "many relief lengths (half an element: farther, a pass ties neighbouring "
+                                    "elements into plates)", minimum=0)
+    axis: str = option("all", "the smoothing acts on the whole step (all) or only on its component "
+                              "along the style's up (up: elements keep their relief, move freely across the "
+                              "surface)", enum=SMOOTH_AXES)
+    with_parts: bool = option(False, "smoothing also where parts move the style; false: only where "
+                                     "the parts are left out (a steep relief, or parts 0), whose Gaussians would"
+                                     " otherwise each move on their own")
+
+
+@dataclass
+@checked("stylize.copies")
+class CopiesConfig:
+    """What happens to the part copies the selection cut at a cluster's edge (:func:`completed_selection`,
+    :func:`own_copies`); all off by default."""
+
+    trim: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster; one Gaussian where the "
+                              "parts are left out) is dropped where less than this share of it lies over the cluster's "
+                              "own content (its nearest content point, registered back, in the cluster): the "
+                              "neighbours' footprints overlap, and their copies piled on each other show no element "
+                              "whole; 0: every selected Gaussian flows", minimum=0, maximum=1)
+    complete: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster) holding at least "
+                                  "this share of its part is completed to the whole part (the footprint cuts elements"
+                                  " at a cluster's edge: a trained boulder copy held a median third of its boulder); "
+                                  "only where parts are on, on clusters the selection did not thin, before trim; 0: "
+                                  "off", minimum=0, maximum=1)
+    complete_height: float = option(0.0, "complete only the parts whose mean height (along the style's up) ranks above "
+                                         "this quantile of the parts' mean heights: the ones standing out of the "
+                                         "ground, mostly elements; 0: every part", minimum=0, maximum=1)
+    drop: float = option(0.0, "a part copy holding less than this share of its part is dropped (with complete: the "
+                              "fragments left beside the completed copies); 0: off", minimum=0, maximum=1)
 
 
 @dataclass
@@ -117,85 +211,10 @@ class StylizeConfig:
                                        "style-area (the style's by area, the content's one per point: a trained "
                                        "capture's large Gaussians behind its visible surface then do not pull the style"
                                        " in)", enum=MASSES)
-    smooth_k: int = option(32, "displacement smoothing: neighbours (in the style's own positions, same cluster) each "
-                               "step's displacement is averaged over", minimum=1)
-    smooth_passes: int = option(16, "displacement smoothing: passes of that average per step (0: off); elements move as"
-                                    " wholes", minimum=0)
-    smooth_axis: str = option("all", "displacement smoothing acts on the whole step (all) or only on its component "
-                                     "along the style's up (up: elements keep their relief, move freely across the "
-                                     "surface)", enum=SMOOTH_AXES)
-    smooth_radius: float = option(0.25, "displacement smoothing: a pass averages only over the neighbours within this "
-                                        "many style relief lengths (a reach in length, whatever the style's density); "
-                                        "0: over all smooth_k neighbours", minimum=0)
-    smooth_neighbours: int = option(16, "displacement smoothing: where the style is so sparse that smooth_radius holds "
-                                        "fewer neighbours, the radius widens to the median distance of a Gaussian's "
-                                        "this-many-th nearest, up to smooth_radius_max (the trained weave: 0.25 -> 0.5 "
-                                        "relief lengths; every grass keeps 0.25); 0: smooth_radius alone", minimum=0)
-    smooth_radius_max: float = option(0.5, "displacement smoothing: smooth_neighbours widens the radius to at most this "
-                                           "many relief lengths (half an element: farther, a pass ties neighbouring "
-                                           "elements into plates)", minimum=0)
-    smooth_with_parts: bool = option(False, "displacement smoothing also where parts move the style; false: only where "
-                                            "the parts are left out (a steep relief, or parts 0), whose Gaussians would"
-                                            " otherwise each move on their own")
-    parts: float = option(1.2, "piecewise-rigid flow: the style cut into parts (k-means on [position / (parts relief "
-                               "lengths), colour]: parts about this many relief lengths across), each moving as one, "
-                               "so that elements made of many Gaussians move whole (0: off)", minimum=0)
-    parts_shape: str = option("auto", "how the style is cut into parts: kmeans (parts relief lengths across, on "
-                                      "position and colour, started as parts_start says), relief (the watershed basins of its top "
-                                      "surface: one part per dome, whatever its size, bordered by the crevices) or "
-                                      "auto (kmeans, or relief where parts of one size, parts_dome_probe relief "
-                                      "lengths from cells, cut the domes: the median basin keeps less than "
-                                      "parts_dome_cut of its Gaussians in one part); parts > 0 "
-                                      "turns them on", enum=PART_SHAPES)
-    parts_dome_cut: float = option(0.65, "parts_shape auto: the basins replace the k-means parts where the median "
-                                         "basin (of 8 Gaussians or more) keeps less than this share of its Gaussians "
-                                         "in one k-means part (procedural and trained stones 0.48-0.60, pebbles "
-                                         "0.69-0.80)", minimum=0, maximum=1)
-    parts_dome_probe: float = option(0.8, "parts_shape auto: the k-means parts that test the domes are this many "
-                                          "relief lengths across, whatever parts is (parts_dome_cut was measured "
-                                          "there; at 1.2 the stones' domes read 0.709 and would get k-means parts)",
-                                     exclusiveMinimum=0)
-    parts_start: str = option("basins", "where the k-means parts start: cells (one per occupied cell of parts relief "
-                                        "lengths on the patch's plane) or basins (one per basin of the relief, so one "
-                                        "per dome, refined by position and colour: by the labels the procedural "
-                                        "pebbles keep 0.916 of their Gaussians in their largest part against 0.884 from "
-                                        "cells, the 1M pebbles 0.895 against 0.829, the trained pebbles 0.956 against "
-                                        "0.952)", enum=PART_STARTS)
-    parts_colour: float = option(3.0, "the colour's weight in the parts' k-means (features [xyz / part size, "
-                                      "parts_colour * rgb]): part borders follow colour edges such as a pebble's rim",
-                                      minimum=0)
-    parts_motion: str = option("rigid", "each part's step: the mass-weighted mean of its Gaussians' steps (translation)"
-                                        " or their best rigid motion (rigid: a part also turns to follow a curved "
-                                        "content)", enum=PART_MOTIONS)
-    parts_max_aspect: float = option(0.16, "parts only on a style whose relief aspect (RMS height of its top surface "
-                                           "over its relief length) is at most this: elements about a relief length in "
-                                           "every direction (pebbles, boulders: 0.08-0.13), not blades or a weave (0.26-"
-                                           "0.34), which rigid parts would tear; a large value: parts on "
-                                           "every style", minimum=0)
-    trim: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster; one Gaussian where the "
-                              "parts are left out) is dropped where less than this share of it lies over the cluster's "
-                              "own content (its nearest content point, registered back, in the cluster): the "
-                              "neighbours' footprints overlap, and their copies piled on each other show no element "
-                              "whole; 0: every selected Gaussian flows", minimum=0, maximum=1)
-    complete: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster) holding at least "
-                                  "this share of its part is completed to the whole part (the footprint cuts elements"
-                                  " at a cluster's edge: a trained boulder copy held a median third of its boulder); "
-                                  "only where parts are on, on clusters the selection did not thin, before trim; 0: "
-                                  "off", minimum=0, maximum=1)
-    complete_height: float = option(0.0, "complete only the parts whose mean height (along the style's up) ranks above "
-                                         "this quantile of the parts' mean heights: the ones standing out of the "
-                                         "ground, mostly elements; 0: every part", minimum=0, maximum=1)
-    drop: float = option(0.0, "a part copy holding less than this share of its part is dropped (with complete: the "
-                              "fragments left beside the completed copies); 0: off", minimum=0, maximum=1)
-    sinkhorn: SinkhornConfig = field(default_factory=StylizeSinkhornConfig)
-
-    def __post_init__(self):  # a sinkhorn block given as a dict becomes its dataclass (the options: @checked)
-        if isinstance(self.sinkhorn, dict):
-            known = {f.name for f in fields(StylizeSinkhornConfig)}
-            unknown = sorted(set(self.sinkhorn) - known)
-            if unknown:
-                raise ValueError(f"stylize.sinkhorn: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-            self.sinkhorn = StylizeSinkhornConfig(**self.sinkhorn)
+    parts: PartsConfig = group(PartsConfig, "the piecewise-rigid flow: parts about an element across move as one")
+    smoothing: SmoothingConfig = group(SmoothingConfig, "displacement smoothing where the parts are left out")
+    copies: CopiesConfig = group(CopiesConfig, "part copies cut at a cluster's edge: trimmed, completed or dropped (off)")
+    sinkhorn: SinkhornConfig = group(StylizeSinkhornConfig, "the debiased Sinkhorn solver (geomloss conventions: cost |x-y|^2/2, eps = blur^2)")
 
 
 def normalize_pair(content: torch.Tensor, style: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
@@ -337,7 +356,7 @@ def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour:
     Gaussians' steps, ``v_P = sum_j b_j v_j / sum_j b_j``: the exact gradient flow of eq. 9 restricted
     to one translation per part. At about an element's size (one relief length,
     :func:`~wast3d.registration.relief_length`) the elements move whole and still independently of each
-    other, unlike a diffusion of the steps (``smooth_passes``), whose reach spans several elements."""
+    other, unlike a diffusion of the steps (``smoothing.passes``), whose reach spans several elements."""
     from sklearn.cluster import KMeans
 
     from .registration import patch_frame
@@ -370,7 +389,7 @@ def dome_share(basins: torch.Tensor, part: torch.Tensor, min_size: int = 8) -> f
     another cut -> the median over basins of ``min_size`` Gaussians or more of the share of a basin's
     Gaussians in its largest part (1: no dome is cut; 1 where no basin is that large).
 
-    Why (``parts_shape`` auto): k-means parts of one size cut elements larger than a part, or
+    Why (``parts.shape`` auto): k-means parts of one size cut elements larger than a part, or
     elements that colour does not tell apart; they then tear in the flow (``element_intact``: the
     trained stones 0.70 with k-means parts, 0.94 with the basins), while on the pebbles the k-means
     parts do better (trained pebbles on the lego: 0.84 against 0.74). The basins stand in for the
@@ -387,51 +406,51 @@ def dome_share(basins: torch.Tensor, part: torch.Tensor, min_size: int = 8) -> f
 
 
 def probe_parts(style: GaussianScene, up, length: float, cfg: StylizeConfig) -> torch.Tensor:
-    """The parts that ``parts_shape: auto`` tests the domes with ([M] ids): k-means parts of
-    ``parts_dome_probe`` relief lengths ``length``, started from cells, whatever ``parts`` and
-    ``parts_start`` are (``parts_dome_cut`` was measured on them)."""
-    return style_parts(style.means, style.rgb, up, cfg.parts_dome_probe * length, cfg.parts_colour)
+    """The parts that ``parts.shape: auto`` tests the domes with ([M] ids): k-means parts of
+    ``parts.dome_probe`` relief lengths ``length``, started from cells, whatever ``parts.size`` and
+    ``parts.start`` are (``parts.dome_cut`` was measured on them)."""
+    return style_parts(style.means, style.rgb, up, cfg.parts.dome_probe * length, cfg.parts.colour)
 
 
 def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | None:
     """The style's parts for the flow ([M] ids, :func:`style_parts`), or None where every Gaussian moves
-    freely: ``parts`` 0, a style without relief, or a steep one (relief aspect above ``parts_max_aspect``:
+    freely: ``parts.size`` 0, a style without relief, or a steep one (relief aspect above ``parts.max_aspect``:
     blades or strands longer than a part, which turning parts as one would tear: docs/measurements.md).
     Says which, and why, in the log."""
     from .registration import relief, relief_basins
 
-    if cfg.parts <= 0:
+    if cfg.parts.size <= 0:
         return None
     try:
         rel = relief(style.means, up=up)
     except ValueError as e:
         log.warning("stylize: parts left out, every Gaussian moves freely (no relief: %s)", e)
         return None
-    if rel.aspect > cfg.parts_max_aspect:
+    if rel.aspect > cfg.parts.max_aspect:
         log.info("stylize: parts left out, every Gaussian moves freely: the style's relief aspect %.3g is above "
-                 "parts_max_aspect %.3g (elements longer than a relief length: blades, strands)", rel.aspect,
-                 cfg.parts_max_aspect)
+                 "parts.max_aspect %.3g (elements longer than a relief length: blades, strands)", rel.aspect,
+                 cfg.parts.max_aspect)
         return None
-    size = cfg.parts * rel.length
-    basins = relief_basins(style.means, up, rel.length) if cfg.parts_shape != "kmeans" or cfg.parts_start == "basins" else None
-    use_basins, why = cfg.parts_shape == "relief", ""
-    if cfg.parts_shape == "auto":  # decided before any k-means parts of the flow's size are made
-        probe = cfg.parts_dome_probe * rel.length
+    size = cfg.parts.size * rel.length
+    basins = relief_basins(style.means, up, rel.length) if cfg.parts.shape != "kmeans" or cfg.parts.start == "basins" else None
+    use_basins, why = cfg.parts.shape == "relief", ""
+    if cfg.parts.shape == "auto":  # decided before any k-means parts of the flow's size are made
+        probe = cfg.parts.dome_probe * rel.length
         cut = dome_share(basins, probe_parts(style, up, rel.length, cfg))
-        use_basins = cut < cfg.parts_dome_cut
+        use_basins = cut < cfg.parts.dome_cut
         why = (f"parts of {probe:.4g} across {'would cut its domes' if use_basins else 'keep its domes'} (the median "
-               f"keeps {cut:.3g} of its Gaussians in one, parts_dome_cut {cfg.parts_dome_cut:.3g})")
+               f"keeps {cut:.3g} of its Gaussians in one, parts.dome_cut {cfg.parts.dome_cut:.3g})")
     if use_basins:
         part = basins
         how = f"the relief's basins (relief length {rel.length:.4g})" + (f": {why}" if why else "")
     else:
-        part = style_parts(style.means, style.rgb, up, size, cfg.parts_colour,
-                           start=basins if cfg.parts_start == "basins" else None)
-        how = (f"k-means parts (position over {size:.4g}, colour x {cfg.parts_colour:.3g}) started from the "
-               f"{cfg.parts_start}" + (f"; {why}" if why else ""))
+        part = style_parts(style.means, style.rgb, up, size, cfg.parts.colour,
+                           start=basins if cfg.parts.start == "basins" else None)
+        how = (f"k-means parts (position over {size:.4g}, colour x {cfg.parts.colour:.3g}) started from the "
+               f"{cfg.parts.start}" + (f"; {why}" if why else ""))
     counts = torch.bincount(part)
     log.info("stylize: relief aspect %.3g <= %.3g: %d parts (median %d Gaussians) moving as one (%s): %s",
-             rel.aspect, cfg.parts_max_aspect, len(counts), int(counts.median()), cfg.parts_motion, how)
+             rel.aspect, cfg.parts.max_aspect, len(counts), int(counts.median()), cfg.parts.motion, how)
     return part
 
 
@@ -446,11 +465,11 @@ def neighbour_distance(points: torch.Tensor, k: int, sample: int = 20000) -> flo
 
 
 def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | None:
-    """The displacement smoothing's neighbourhood radius in the style's units, ``smooth_radius`` relief
+    """The displacement smoothing's neighbourhood radius in the style's units, ``smoothing.radius`` relief
     lengths L (:func:`~wast3d.registration.relief`), widened to :func:`neighbour_distance` d_k of the
-    ``smooth_neighbours``-th nearest where that is farther, up to ``smooth_radius_max`` L:
-    ``r = max(smooth_radius L, min(d_k, smooth_radius_max L))``. None (no limit: ``smooth_k`` nearest,
-    whatever their distance) when smoothing is off, ``smooth_radius`` is 0 or the style has no relief.
+    ``smoothing.neighbours``-th nearest where that is farther, up to ``smoothing.radius_max`` L:
+    ``r = max(radius L, min(d_k, radius_max L))``. None (no limit: ``smoothing.k`` nearest,
+    whatever their distance) when smoothing is off, ``smoothing.radius`` is 0 or the style has no relief.
 
     Why a length: the k nearest neighbours span a distance set by the style's density, so 16 passes
     over 16 neighbours reach about half a relief length on the demo's trained grass (1,000 Gaussians a
@@ -463,21 +482,21 @@ def smoothing_reach(style: GaussianScene, up, cfg: StylizeConfig) -> float | Non
     cap)."""
     from .registration import relief
 
-    if not (cfg.smooth_passes and cfg.smooth_radius > 0):
+    if not (cfg.smoothing.passes and cfg.smoothing.radius > 0):
         return None
     try:
         rel = relief(style.means, up=up)
     except ValueError as e:
-        log.warning("stylize: displacement smoothing over the %d nearest, at any distance (no relief: %s)", cfg.smooth_k, e)
+        log.warning("stylize: displacement smoothing over the %d nearest, at any distance (no relief: %s)", cfg.smoothing.k, e)
         return None
-    L, k = rel.length, cfg.smooth_neighbours
+    L, k = rel.length, cfg.smoothing.neighbours
     d = neighbour_distance(style.means, k) if k else 0.0
-    w = max(cfg.smooth_radius * L, min(d, cfg.smooth_radius_max * L))
-    why = "" if not k else (f"; the {k}-th nearest at {d / L:.3g} L" if w <= cfg.smooth_radius * L else
-                            f": this sparse style's {k}-th nearest lies at {d / L:.3g} L, farther than smooth_radius "
-                            f"{cfg.smooth_radius:g}; smooth_radius_max {cfg.smooth_radius_max:g}")
+    w = max(cfg.smoothing.radius * L, min(d, cfg.smoothing.radius_max * L))
+    why = "" if not k else (f"; the {k}-th nearest at {d / L:.3g} L" if w <= cfg.smoothing.radius * L else
+                            f": this sparse style's {k}-th nearest lies at {d / L:.3g} L, farther than smoothing.radius "
+                            f"{cfg.smoothing.radius:g}; smoothing.radius_max {cfg.smoothing.radius_max:g}")
     log.info("stylize: displacement smoothing within %.4g (%.3g relief lengths of %.4g%s), %d passes", w, w / L, L, why,
-             cfg.smooth_passes)
+             cfg.smoothing.passes)
     return w
 
 
@@ -590,12 +609,12 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     pot = None
     araps = [_ArapState(yn, cfg.arap_k) for yn in ys] if cfg.loss == "arap" else None
     radii = [None if pr.y_reach is None else pr.y_reach / r for pr, (_, r) in zip(pairs, norms)]
-    nb = neighbour_graph(ys, cfg.smooth_k, radii).to(dev) if cfg.smooth_passes else None
+    nb = neighbour_graph(ys, cfg.smoothing.k, radii).to(dev) if cfg.smoothing.passes else None
     part = packed_parts([pr.y_part for pr in pairs], m)
     part = None if part is None else part.to(dev)
-    if nb is not None and cfg.smooth_axis == "up":
+    if nb is not None and cfg.smoothing.axis == "up":
         if up is None:
-            raise ValueError("stylize: smooth_axis 'up' needs the style's up direction")
+            raise ValueError("stylize: smoothing.axis up needs the style's up direction")
         up = torch.as_tensor(up, dtype=torch.float64)
         up = (up / up.norm()).to(dev, dt)
     else:
@@ -626,8 +645,8 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
             if dC.grad is not None:
                 dC.grad.mul_(flow)
         if nb is not None:
-            Y.grad = smooth_displacements(Y.grad, nb, cfg.smooth_passes, up)
-        if part is not None and cfg.parts_motion == "rigid":  # the optimizer's step is -lr * grad
+            Y.grad = smooth_displacements(Y.grad, nb, cfg.smoothing.passes, up)
+        if part is not None and cfg.parts.motion == "rigid":  # the optimizer's step is -lr * grad
             Y.grad = -part_rigid_steps(Y.detach(), -cfg.lr * Y.grad, part, b) / cfg.lr
         elif part is not None:
             Y.grad = part_means(Y.grad, part, b)
@@ -768,23 +787,23 @@ def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig", hei
     copies is whole or kept. height [M]: each style Gaussian's height along its up (complete_height)."""
     size = torch.bincount(part)
     eligible = None
-    if cfg.complete_height > 0:
+    if cfg.copies.complete_height > 0:
         mean_h = torch.zeros(len(size), dtype=torch.float64).index_add_(0, part, height.double()) / size.double()
-        eligible = mean_h > torch.quantile(mean_h, cfg.complete_height)
+        eligible = mean_h > torch.quantile(mean_h, cfg.copies.complete_height)
     out, added, cut, thinned = [None] * (len(selection.offsets) - 1), 0, 0, 0
     for i in range(len(out)):
         sel = selection.indices[selection.offsets[i]:selection.offsets[i + 1]]
         if len(sel) == 0 or float(selection.log_gain[i]) != 0.0:
             thinned += len(sel) > 0
             continue
-        c = part_copies(sel, part, size, cfg.complete, cfg.drop, eligible)
+        c = part_copies(sel, part, size, cfg.copies.complete, cfg.copies.drop, eligible)
         new = torch.sort(torch.cat([c.whole, c.kept]))[0]
         if len(new):
             added += len(c.whole) - (len(sel) - len(c.kept) - len(c.cut))  # the whole parts' Gaussians not selected
             cut += len(c.cut)
             out[i] = new
     log.info("stylize: complete %.2f added %d Gaussians to part copies holding that share of their part, drop %.2f "
-             "left out %d of copies holding less%s", cfg.complete, added, cfg.drop, cut,
+             "left out %d of copies holding less%s", cfg.copies.complete, added, cfg.copies.drop, cut,
              f"; {thinned} thinned clusters left as selected" if thinned else "")
     return out
 
@@ -801,19 +820,19 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     c_rgb = content.rgb.float()
     c_mass, s_mass = transport_masses(content, style, cfg.masses)
     part = flow_parts(style, reg.style_up.tolist(), cfg)
-    if part is not None and cfg.smooth_passes and not cfg.smooth_with_parts:
-        log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smooth_with_parts false)")
-        cfg = replace(cfg, smooth_passes=0)
+    if part is not None and cfg.smoothing.passes and not cfg.smoothing.with_parts:
+        log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smoothing.with_parts false)")
+        cfg = replace(cfg, smoothing=replace(cfg.smoothing, passes=0))
     reach = smoothing_reach(style, reg.style_up.tolist(), cfg)
-    asked = cfg.complete > 0 or cfg.drop > 0
+    asked = cfg.copies.complete > 0 or cfg.copies.drop > 0
     completing = asked and part is not None
     if asked and part is None:
-        log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.complete, cfg.drop)
+        log.info("stylize: complete %.2f and drop %.2f left out: no parts, so no part copies", cfg.copies.complete, cfg.copies.drop)
     completed = [None] * K
     if completing:
         completed = completed_selection(selection, part, cfg, style.means.double() @ reg.style_up.double())
     tree = None
-    if cfg.trim > 0:
+    if cfg.copies.trim > 0:
         from .geometry import kdtree
 
         tree, trimmed, total = kdtree(cm.numpy()), 0, 0
@@ -829,7 +848,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         if tree is not None:
             back = reg.inverse(style.means[sel].double(), torch.full((len(sel),), i, dtype=torch.long))
             nearest = labels.long()[torch.from_numpy(tree.query(back.numpy())[1])]
-            keep = own_copies(nearest, i, None if part is None else part[sel], cfg.trim)
+            keep = own_copies(nearest, i, None if part is None else part[sel], cfg.copies.trim)
             total += len(sel)
             if bool(keep.any()):  # a cluster none of whose copies is its own keeps them all
                 trimmed += int((~keep).sum())
@@ -847,7 +866,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         raise ValueError("stylize: no non-empty cluster")
     if tree is not None:
         log.info("stylize: trim %.2f dropped %d of %d selected Gaussians (%.1f %%): part copies mostly over the "
-                 "neighbouring clusters' content", cfg.trim, trimmed, total, 100.0 * trimmed / max(total, 1))
+                 "neighbouring clusters' content", cfg.copies.trim, trimmed, total, 100.0 * trimmed / max(total, 1))
     else:
         log.info("stylize: trim 0: every selected Gaussian flows, the neighbours' overlapping copies included")
     results = stylize_in_batches(pairs, cfg, progress, up=reg.style_up)

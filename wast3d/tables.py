@@ -90,6 +90,13 @@ METRIC_COLUMNS = ("content_chamfer", "coarse_chamfer", "coverage", "coverage_ele
                   "style_patch_sinkhorn", "tilt_w1_deg", "aniso_w1", "colour_sinkhorn")
 
 
+def without_empty_metrics(rows: list[dict]) -> list[dict]:
+    """``rows`` without the metric columns (METRIC_COLUMNS) that no row computed (a metric the evaluation
+    leaves out, such as the patch metrics at ``metrics.patches: 0``)."""
+    empty = {k for k in METRIC_COLUMNS if all(r.get(k, None) is None for r in rows)}
+    return [{k: v for k, v in r.items() if k not in empty} for r in rows]
+
+
 def method_benchmarks(results: Path, content: str, style: str, method: str, partition: str | None) -> list[Path]:
     """The Snakemake benchmark files of the stages a method needs beyond the shared ones (pretraining,
     surface sampling and k-means are shared by every method and not counted)."""

@@ -382,16 +382,40 @@ SHEET_METHODS = [m for m in TABLE1_METHODS if m != "input"]  # the comparison sh
 SHEET_MAIN = [m for m in ("default", "selected", "colour_ot") if m in SHEET_METHODS]
 
 
-def sheet_method_renders(w):
-    """The render folders of SHEET_METHODS for one pair (the `methods` input of those rules)."""
-    return [results("render_pair", content=w.content, style=w.style, method=m) for m in SHEET_METHODS]
+# The first result comes first: the jobs on the way to the first Table 1 pair's result and its comparison
+# sheet (the method, the collage, colour transfer and the content's renders) run before everything else,
+# Table 1's evaluations and the other pairs after (the scheduler runs the ready job of highest priority).
+FIRST_PAIR = (TABLE1_PAIRS or PAIRS or [(None, None)])[0]
+FIRST_METHODS = set(SHEET_MAIN) | {"input"}
+FIRST_PARTITIONS = {EXPERIMENTS[m]["partition"] for m in SHEET_MAIN if m in EXPERIMENTS}
+
+
+def first_result(w):
+    """A job's priority: 10 on the way to the first pair's result and sheet, else 0."""
+    d = dict(w.items())
+    content, style = FIRST_PAIR
+    if "scene" in d:
+        return 10 if d["scene"] in FIRST_PAIR else 0
+    if d.get("content", content) != content or d.get("style", style) != style:
+        return 0
+    if d.get("partition") not in (None, *FIRST_PARTITIONS):
+        return 0
+    return 10 if all(d.get(k) in (None, *FIRST_METHODS) for k in ("experiment", "method")) else 0
+
+
+def sheet_method_renders(w, methods=None):
+    """The render folders of SHEET_METHODS (those of ``methods``, when given) for one pair (the `methods`
+    input of the sheets' rules)."""
+    return [results("render_pair", content=w.content, style=w.style, method=m) for m in SHEET_METHODS
+            if methods is None or m in methods]
 
 
 def sheet_columns(input, reference=True, methods=None):
     """LABEL=FOLDER arguments of `wast3d compare` / `wast3d turntables`: content, style, (the style at
-    the result's scale), then Table 1's methods (those of ``methods`` only, when given)."""
+    the result's scale), then Table 1's methods (those of ``methods`` only, as sheet_method_renders
+    listed them)."""
     head = [("content", input.content), ("style", input.style)]
     head += [("style at the result's scale", input.reference)] if reference else []
+    shown = [m for m in SHEET_METHODS if methods is None or m in methods]
     return " ".join(shlex.quote(f"{label}={path}") for label, path in
-                    head + [(TABLE1_METHODS[m], p) for m, p in zip(SHEET_METHODS, input.methods)
-                            if methods is None or m in methods])
+                    head + [(TABLE1_METHODS[m], p) for m, p in zip(shown, input.methods)])

@@ -14,6 +14,7 @@ rule render_method:
         exe=WAST3D,
         cfg=lambda w: stage_params("render", render_block(w.content)),
         args=stage_args("render"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -33,6 +34,7 @@ rule render_scene:
         exe=WAST3D,
         cfg=lambda w: stage_params("render", render_block(w.scene)),
         args=stage_args("render", reference=lambda w: results("scene", scene=w.scene)),  # its own cameras
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -54,6 +56,7 @@ rule texture_reference:
         exe=WAST3D,
         cfg=lambda w: stage_params("texture-reference", render_block(w.style)),
         args=stage_args("texture-reference"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -75,6 +78,7 @@ rule colour_transfer:
         exe=WAST3D,
         cfg=stage_params("colour-transfer", EVALUATION.get("colour_transfer", {})),
         args=stage_args("colour-transfer"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -117,18 +121,16 @@ rule comparison_sheet:
         content=results("render_pair", method="input"),
         style=results("render_scene", scene="{style}"),
         reference=results("texture_reference"),
-        methods=sheet_method_renders,
+        methods=lambda w: sheet_method_renders(w, SHEET_MAIN),
     output:
-        main=report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
-        methods=report(f"{RESULTS}/figures/{{content}}__{{style}}_methods.png", caption="../report/comparison.rst",
-                       category="Figures"),
+        report(f"{RESULTS}/figures/{{content}}__{{style}}.png", caption="../report/comparison.rst", category="Figures"),
     wildcard_constraints:
         content=constraint(list(SCENES)),
         style=constraint(list(SCENES)),
     params:
         exe=WAST3D,
-        main=lambda w, input: sheet_columns(input, methods=SHEET_MAIN),
-        columns=lambda w, input: sheet_columns(input),
+        columns=lambda w, input: sheet_columns(input, methods=SHEET_MAIN),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -136,8 +138,32 @@ rule comparison_sheet:
     benchmark:
         f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}.tsv"
     shell:
-        "({params.exe} --threads {threads} compare {output.main:q} {params.main} && "
-        "{params.exe} --threads {threads} compare {output.methods:q} {params.columns}) 2> {log:q}"
+        "{params.exe} --threads {threads} compare {output:q} {params.columns} 2> {log:q}"
+
+
+rule methods_sheet:
+    input:
+        content=results("render_pair", method="input"),
+        style=results("render_scene", scene="{style}"),
+        reference=results("texture_reference"),
+        methods=sheet_method_renders,
+    output:
+        report(f"{RESULTS}/figures/{{content}}__{{style}}_methods.png", caption="../report/comparison.rst",
+               category="Figures"),
+    wildcard_constraints:
+        content=constraint(list(SCENES)),
+        style=constraint(list(SCENES)),
+    params:
+        exe=WAST3D,
+        columns=lambda w, input: sheet_columns(input),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/figures/{{content}}__{{style}}_methods.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/rules/figure_{{content}}__{{style}}_methods.tsv"
+    shell:
+        "{params.exe} --threads {threads} compare {output:q} {params.columns} 2> {log:q}"
 
 
 rule turntable_page:

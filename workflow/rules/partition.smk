@@ -13,6 +13,7 @@ rule surface:
         exe=WAST3D,
         cfg=lambda w: stage_params("surface", SCENES[w.scene].get("surface", {})),
         args=stage_args("surface"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -36,6 +37,7 @@ rule style_clean:
         exe=WAST3D,
         cfg=lambda w: stage_params("style-clean", SCENES[w.scene].get("style_clean", {})),
         args=stage_args("style-clean"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -58,6 +60,7 @@ rule cluster:
         exe=WAST3D,
         cfg=lambda w: stage_params("cluster", PARTITIONS[w.partition].get("cluster", {})),
         args=stage_args("cluster"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -82,6 +85,7 @@ rule register:
         exe=WAST3D,
         cfg=lambda w: stage_params("register", PARTITIONS[w.partition].get("register", {})),
         args=stage_args("register"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -105,6 +109,7 @@ rule select:
         exe=WAST3D,
         cfg=lambda w: stage_params("select", PARTITIONS[w.partition].get("select", {})),
         args=stage_args("select"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:

@@ -20,6 +20,7 @@ rule pretrain:
     resources:
         mem_mb=16000,
         runtime=120,
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:

@@ -12,6 +12,7 @@ rule procedural_scene:
         name=lambda w: SCENES[w.scene]["name"],
         n=lambda w: SCENES[w.scene].get("n_gaussians", 30000),
         seed=lambda w: SCENES[w.scene].get("seed", 0),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -32,6 +33,7 @@ rule import_ply:
     params:
         exe=WAST3D,
         drop=lambda w: "--drop-invalid" if SCENES[w.scene].get("drop_invalid") else "",
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:

@@ -23,6 +23,7 @@ rule sinkhorn:
     resources:
         mem_mb=8000,
         runtime=240,
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:
@@ -44,6 +45,7 @@ rule rescale:
         exe=WAST3D,
         cfg=lambda w: stage_params("rescale", EXPERIMENTS[w.experiment].get("rescale", {})),
         args=stage_args("rescale"),
+    priority: first_result
     conda:
         "../envs/wast3d.yaml"
     log:

@@ -24,7 +24,7 @@ OUT = ROOT / "config" / "README.md"
 STAGES_OUT = ROOT / "docs" / "stages.md"
 
 sys.path.insert(0, str(ROOT))
-from wast3d.options import schema_properties, undocumented  # noqa: E402 - the checkout's own declarations
+from wast3d.options import groups, schema_properties, undocumented  # noqa: E402 - the checkout's own declarations
 from wast3d.stages import STAGES, config_class  # noqa: E402
 
 # schema block (dotted path, $defs resolved) -> the dataclass whose defaults apply: each stage's block
@@ -35,7 +35,9 @@ for _s in STAGES.values():
         BLOCKS.update({f"{_s.block}.{k}": tuple(spec.split(":")) for k, spec in _s.config.items()})
     elif _s.block and _s.config:
         BLOCKS[_s.block] = tuple(_s.config.split(":"))
-BLOCKS["experiments.*.stylize.sinkhorn"] = ("wast3d.stylize", "StylizeConfig.sinkhorn")
+for _path, (_mod, _cls) in list(BLOCKS.items()):  # each option group of a block's dataclass is a block of its own
+    for _name in groups(getattr(__import__(_mod, fromlist=[_cls]), _cls)):
+        BLOCKS[f"{_path}.{_name}"] = (_mod, f"{_cls}.{_name}")
 # dataclass fields deliberately not configurable from the workflow (with the reason)
 NOT_CONFIGURABLE = {("RenderConfig", "background"): "renders are on white; the metrics assume it"}
 
@@ -63,9 +65,14 @@ re-runs that stage and what depends on it, nothing upstream (`docs/workflow.md`,
 
 | source | keys | what happens |
 | --- | --- | --- |
-| `procedural` | `kind` (`content` or `style`), `name` (content: `ant`, `airplane`, `nut`, `globe`, `torus`, `sphere`; style: `pebbles`, `grass`, `wicker`, `stones`), `n_gaussians`, `seed` | generated; no pretraining, no surface sampling |
-| `ply` | `path` (a trained 3DGS PLY), `drop_invalid` (drop rows with NaN/inf instead of stopping), `surface`, `style_clean` | imported; as a content surface-sampled unless `surface.enabled: false`, as a style cleaned unless `style_clean.enabled: false` |
-| `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `kind` (`content` or `style`), `pretrain`, `surface`, `style_clean`, `labels_from` | pretrained (with eq. 1-2 when `kind` is `style`), then surface-sampled (content) or cleaned (style) |
+| `procedural` | `kind` (`content` or `style`), `name` (content: `ant`, `airplane`, `nut`, `globe`, `torus`, `sphere`; style: `pebbles`, `grass`, `wicker`, `stones`), `n_gaussians`, `seed`, `up` | generated; no pretraining, no surface sampling |
+| `ply` | `path` (a trained 3DGS file: `.ply`, SuperSplat's `.compressed.ply`, `.spz`, `.splat`), `drop_invalid` (drop Gaussians with unusable values instead of stopping), `up`, `surface`, `style_clean` | imported; as a content surface-sampled unless `surface.enabled: false`, as a style cleaned unless `style_clean.enabled: false` |
+| `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `kind` (`content` or `style`), `up`, `pretrain`, `surface`, `style_clean`, `labels_from` | pretrained (with eq. 1-2 when `kind` is `style`), then surface-sampled (content) or cleaned (style) |
+
+`up` (every kind): the axis the scene stands on, which its renders turn about. `auto` (the default)
+reads it from the scene: a 3DGS file is y-down as the reference layout is, a Blender folder takes its
+cameras' mean up, a procedural scene is z-up; the log says which and why. One of `z`, `-z`, `y`, `-y`,
+`x`, `-x` sets it.
 """
 
 
@@ -185,7 +192,7 @@ def missing(schema: dict) -> list[str]:
             cls = BLOCKS[path][1].split(".")[0]
             for f in _defaults(path):
                 if f not in node.get("properties", {}) and (cls, f) not in NOT_CONFIGURABLE and \
-                        not (path.endswith("stylize") and f == "sinkhorn"):
+                        f"{path}.{f}" not in BLOCKS:
                     out.append(f"{path}.{f}: a {cls} field the schema does not accept (declare it with option())")
     return out
 
