@@ -205,3 +205,19 @@ def mean_spacing(points: torch.Tensor, max_points: int = 200_000, seed: int = 0)
         points = points[torch.randperm(len(points), generator=g)[:max_points]]
     d, _ = knn(points, points, 1, exclude_self=True)
     return max(float(d.mean()), 1e-12)
+
+
+def cap_per_label(labels: torch.Tensor, cap: int, g: torch.Generator) -> torch.Tensor:
+    """labels [N] (ids 0..K-1) -> the indices of at most ``cap`` points per label, drawn uniformly by the
+    generator ``g`` (every point where a label has at most ``cap``), in the order of their label then of
+    the draw. ``cap`` 0: every point, in label order."""
+    labels = labels.long()
+    if len(labels) == 0:
+        return labels
+    order = torch.argsort(labels * 1.0 + torch.rand(len(labels), generator=g, dtype=torch.float64))
+    if cap <= 0:
+        return order
+    lab_sorted = labels[order]
+    first = torch.searchsorted(lab_sorted, torch.arange(int(labels.max()) + 1))
+    rank = torch.arange(len(labels)) - first[lab_sorted]
+    return order[rank < cap]

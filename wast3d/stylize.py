@@ -204,6 +204,10 @@ class StylizeConfig:
                                         "normalized to the unit ball", enum=BLUR_UNITS)
     batch: int = option(0, "clusters per packed Sinkhorn solve (0: all in one; 1: one at a time, the per-pair "
                            "reference); same result, fewer kernel launches", minimum=0)
+    content_points: int = option(4096, "each cluster's content points in the transport, at most (a uniform draw "
+                                       "beyond, transport_points: the cost grows as content points times style "
+                                       "Gaussians; every project scene has fewer per cluster); 0: every point",
+                                 minimum=0)
     masses: str = option("style-area", "each Gaussian's mass in the transport: area (opacity times its two largest "
                                        "scales: both sides are distributions of surface, whatever the Gaussians' "
                                        "sizes), uniform (one per Gaussian: where a trained scene uses many small "
@@ -808,6 +812,24 @@ def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig", hei
     return out
 
 
+def transport_points(labels: torch.Tensor, cap: int) -> torch.Tensor:
+    """[N] bool: the content points each cluster's transport sees, at most ``cap`` per cluster (a seeded
+    uniform draw, :func:`~wast3d.geometry.cap_per_label`; every point where ``cap`` is 0 or no cluster is
+    larger). The divergence's target is the cluster's surface, and the flow moves the style at the scale
+    of gamma (30 % of the cluster's radius): a few thousand samples of a patch stand for it as well as
+    more, while the cost grows as content points times style Gaussians."""
+    keep = torch.ones(len(labels), dtype=torch.bool)
+    if cap <= 0 or len(labels) == 0 or int(torch.bincount(labels.long()).max()) <= cap:
+        return keep
+    from .geometry import cap_per_label
+
+    keep[:] = False
+    keep[cap_per_label(labels, cap, torch.Generator().manual_seed(0))] = True
+    log.info("stylize: each cluster's transport sees at most %d of its content points (%d of %d in all)", cap,
+             int(keep.sum()), len(labels))
+    return keep
+
+
 def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, selection,
             cfg: StylizeConfig, progress: bool = True) -> Stylized:
     """Run eq. 9 over all clusters (:class:`Stylized`); ``selection``: a :class:`~wast3d.selection.Selection`
@@ -836,10 +858,11 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         from .geometry import kdtree
 
         tree, trimmed, total = kdtree(cm.numpy()), 0, 0
+    in_transport = transport_points(labels, cfg.content_points)
     todo, pairs = [], []
     for i in range(K):
         sel = indices[offsets[i]:offsets[i + 1]]
-        m = labels == i
+        m = (labels == i) & in_transport
         if len(sel) == 0 or not bool(m.any()):
             log.warning("stylize: cluster %d is empty (content %d, style %d); skipped", i, int(m.sum()), len(sel))
             continue
