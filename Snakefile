@@ -47,6 +47,7 @@ include: "workflow/rules/partition.smk"
 include: "workflow/rules/stylize.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/regions.smk"
 include: "workflow/rules/benchmarks.smk"
 
 
@@ -59,4 +60,5 @@ rule all:
         f"{RESULTS}/tables/table1.csv",
         [f"{RESULTS}/figures/{c}__{s}{k}.png" for c, s in TABLE1_PAIRS for k in ("", "_methods")],
         [f"{RESULTS}/figures/{c}__{s}_turntables.html" for c, s in TABLE1_PAIRS],
+        [f"{RESULTS}/tables/regions.csv"] if REGION_SETS else [],
     default_target: True

@@ -108,7 +108,7 @@ def case_dry_run_edits(tree, d):
     run(tree, wast3d(tree, "run", c, s, d / "out", "-n"), d)
     if not cfg.exists():  # a dry run that writes nothing: let a real (tiny) run write it
         run(tree, wast3d(tree, "run", c, s, d / "out", "--", "results/scenes/c/scene.ply"), d)
-    cfg.write_text(cfg.read_text().replace("iterations: 30", "iterations: 7"))
+    cfg.write_text(cfg.read_text() + "# my edit\n")
     edited = cfg.read_text()
     r = run(tree, wast3d(tree, "run", c, s, d / "out", "-n"), d)
     r["verdict"] = "ok: edits kept" if cfg.read_text() == edited else "the user's edits were OVERWRITTEN"

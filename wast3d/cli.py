@@ -118,18 +118,27 @@ def cmd_view(sub):
     return run
 
 
-@command("run", "stylize CONTENT with STYLE through the workflow: writes OUT/config/config.yaml and runs Snakemake in OUT")
+@command("run", "stylize CONTENT with STYLE (or with several styles, each in its region) through the workflow: "
+                "writes OUT/config/config.yaml and runs Snakemake in OUT")
 def cmd_run(sub):
-    sub.add_argument("content", type=Path, help="PLY (reference, compressed or point cloud), .spz, .splat or Blender folder")
-    sub.add_argument("style", type=Path, help="the same kinds of scene")
-    sub.add_argument("out", type=Path, help="working folder: config/ and results/ go here (re-runs reuse its cache)")
+    sub.add_argument("paths", type=Path, nargs="+", metavar="CONTENT STYLE [STYLE ...] OUT",
+                     help="the content and the style(s): a PLY (reference, compressed or point cloud), .spz, .splat or "
+                          "Blender folder each; OUT: the working folder (config/ and results/ go there; re-runs reuse "
+                          "its cache)")
+    sub.add_argument("--split", metavar="AXIS=VALUE", help="two styles: the first where the content's coordinate "
+                                                           "along AXIS (x, y, z, -x, -y, -z) is at least VALUE, the "
+                                                           "second elsewhere")
+    sub.add_argument("--regions", type=Path, metavar="FILE", help="several styles: a YAML list of regions, each "
+                                                                  "{style: INDEX, box | half_space | colour | labels "
+                                                                  "| rest: ...} (docs/method.md, regions)")
     sub.add_argument("--profile", default=None, help="Snakemake profile (default: the workflow's profiles/local)")
+    sub.epilog = "Snakemake's own arguments (targets, options) go after --: wast3d run C S OUT -- -p TARGET"
     sub.add_argument("-n", "--dry-run", action="store_true",
                      help="only show what would run; writes nothing (not even the config)")
     sub.add_argument("--reset-config", action="store_true",
                      help="rewrite OUT/config/config.yaml from the defaults even if you edited it (yours is kept as "
                           "config.yaml.bak)")
-    sub.add_argument("snakemake_args", nargs="*", help="more Snakemake arguments, after --")
+    sub.set_defaults(snakemake_args=[])  # more Snakemake arguments: after --
 
     def run(a):
         import contextlib
@@ -138,18 +147,23 @@ def cmd_run(sub):
         import yaml
 
         from .io_utils import atomic_path
-        from .quickstart import backup_path, config_text, plan_config, stale_locks, two_scene_config, workflow_root
+        from .quickstart import backup_path, config_text, plan_config, run_config, stale_locks, workflow_root
 
+        if len(a.paths) < 3:
+            raise ValueError("run: give CONTENT STYLE [STYLE ...] OUT")
+        content, styles, a.out = a.paths[0], a.paths[1:-1], a.paths[-1]
         if a.out.exists() and not a.out.is_dir():
             raise ValueError(f"{a.out}: OUT must be a folder (it is a file)")
         root = workflow_root()
         base = yaml.safe_load((root / "config" / "config.yaml").read_text())
-        cfg = two_scene_config(base, a.content, a.style)
+        cfg = run_config(base, content, styles, a.split, a.regions)
         cfg_path = a.out / "config" / "config.yaml"
-        plan = plan_config(cfg_path, cfg, a.content, a.style)
+        plan = plan_config(cfg_path, cfg, content, *styles)
         if a.reset_config and plan.text != (cfg_text := config_text(cfg)):
             plan = type(plan)("write", cfg_text, "reset to the defaults")
-        pair = next(iter(yaml.safe_load(plan.text).get("pairs") or [[None, None]]))
+        used = yaml.safe_load(plan.text)
+        pair = next(iter(used.get("pairs") or [[None, None]]))
+        rset = next(iter(used.get("regions") or {}), None)
         with contextlib.ExitStack() as stack:
             if a.dry_run:
                 workdir = dry_run_folder(a.out, plan.text, stack)
@@ -177,11 +191,13 @@ def cmd_run(sub):
             from .stages import artifact
 
             c, s = pair
+            s = rset or s
             res = a.out / "results"
             final = artifact("final", res, content=c, style=s, experiment="default")
-            log.info("run: done. Result: %s; renders: %s; Table 1: %s; view: wast3d view %s %s %s", final,
+            log.info("run: done. Result: %s; renders: %s; table: %s; view: wast3d view %s", final,
                      Path(artifact("render_pair", res, content=c, style=s, method="default")).parent,
-                     res / "tables" / "table1.md", *(shlex.quote(str(p)) for p in (a.content, a.style, final)))
+                     res / "tables" / ("regions.md" if rset else "table1.md"),
+                     " ".join(shlex.quote(str(p)) for p in (content, *styles, final)))
         return rc
 
     return run
@@ -368,6 +384,21 @@ columns_command("turntables", "one HTML page of render folders' turntables (MP4,
                 "out_html", "turntable_page")
 
 
+@command("merge-regions", "one scene of the results of a set of regions: OUT.ply STYLE=FINAL.ply ... (in the set's "
+                          "order; final.json beside OUT lists each part)")
+def cmd_merge(sub):
+    sub.add_argument("out", type=Path)
+    sub.add_argument("parts", nargs="+", help="STYLE=FINAL.ply ...")
+
+    def run(a):
+        from .pipeline import merge_regions
+
+        merge_regions(_columns(a.parts, "merge-regions"), output_file(a.out))
+        return 0
+
+    return run
+
+
 def _columns(specs: list[str], cmd: str) -> list[tuple[str, Path]]:
     cols = []
     for c in specs:
@@ -393,7 +424,11 @@ def table_command(name: str, help_: str, flag: str, row_help: str, row_fn: str, 
         def run(a):
             from . import tables
 
-            rows = tables.without_empty_metrics([getattr(tables, row_fn)(a.results, spec) for spec in a.specs])
+            rows = []
+            for spec in a.specs:  # a row function gives one row, or a list of them
+                r = getattr(tables, row_fn)(a.results, spec)
+                rows += r if isinstance(r, list) else [r]
+            rows = tables.without_empty_metrics(rows)
             print(tables.write_table(rows, a.out_csv, a.md, a.html).drop(columns=list(hidden)).to_string(index=False))
 
         return run
@@ -403,6 +438,8 @@ def table_command(name: str, help_: str, flag: str, row_help: str, row_fn: str, 
 
 table_command("summarize", "one table row per (content, style, experiment) from the stage reports", "--run",
               "CONTENT__STYLE/EXPERIMENT ...", "summary_spec_row")
+table_command("regions-table", "one row per region of each set: its pair against its own style, and the seams",
+              "--run", "CONTENT__SET/EXPERIMENT ...", "regions_spec_row")
 table_command("table1", "the paper's Table 1: CLIP similarity, weights-free metrics, time, memory, device per method",
               "--row", "CONTENT__STYLE/METHOD/PARTITION/LABEL ... (PARTITION '-' for baselines and the input)",
               "table1_spec_row", hidden=("clip_status",))

@@ -474,3 +474,137 @@ def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Pat
     out.update({"result": str(result_ply), "content": str(content_ply), "style": str(style_ply),
                 "config": {k: dataclasses.asdict(c) for k, c in cfgs.items()}})
     write_json(out_json, out)
+
+
+# ---- several styles on one content, by region (wast3d/regions.py) ---------------------------------
+
+
+def run_regions(*, content: Path, out_npz: Path, params: dict, scene: Path | None = None,
+                out_picture: Path | None = None) -> None:
+    """Each content point's region; ``params["regions"]``: the set's entries (:func:`wast3d.regions.parse_set`),
+    ``scene``: the content scene the ``labels`` regions' files number (each point takes its nearest
+    Gaussian's label)."""
+    from .regions import assign, nearest_labels, parse_set, read_labels
+
+    regions = parse_set(params.get("regions"), "regions")
+    pts = read_ply(content)
+    x = pts.means.double().numpy()
+    scene_labels = None
+    labelled = [r for r in regions if r.kind == "labels"]
+    if labelled:
+        if scene is None:
+            raise ValueError("regions: a labels region needs the content scene its file numbers (--scene)")
+        sc = read_ply(scene)
+        lab = read_labels(labelled[0].spec["path"], len(sc))
+        if any(r.spec["path"] != labelled[0].spec["path"] for r in labelled):
+            raise ValueError("regions: the labels regions of one set read one label file")
+        scene_labels = nearest_labels(x, sc.means.double().numpy(), lab)
+    region = assign(x, pts.rgb.double().numpy(), regions, scene_labels)
+    counts = np.bincount(region, minlength=len(regions))
+    save_npz(out_npz, region=region, styles=np.array([r.style for r in regions]))
+    write_json(Path(out_npz).with_suffix(".json"), {
+        "regions": [{"style": r.style, "kind": r.kind, **r.spec, "points": int(c)} for r, c in zip(regions, counts)],
+        "points": len(x)})
+    log.info("regions: %s", ", ".join(f"{r.style} ({r.kind}) {c} points" for r, c in zip(regions, counts)))
+    if out_picture:
+        from .figures import clusters_picture
+
+        clusters_picture(x, region, out_picture, " | ".join(f"{i}: {r.style}" for i, r in enumerate(regions)))
+
+
+def _region_of(regions: Path, n: int, index: int) -> np.ndarray:
+    d = load_npz(regions, required=("region",))
+    if d["region"].shape != (n,):
+        raise ValueError(f"{regions}: 'region' has shape {d['region'].shape} for {n} content points")
+    if not 0 <= index < len(d["styles"]):
+        raise ValueError(f"{regions}: no region {index} (it has {len(d['styles'])})")
+    return d["region"]
+
+
+def run_region_content(*, content: Path, regions: Path, out_ply: Path, params: dict) -> None:
+    """The content points of region ``params["index"]``: the content a region's style rebuilds."""
+    pts = read_ply(content)
+    k = int(params.get("index", -1))
+    region = _region_of(regions, len(pts), k)
+    write_ply(out_ply, pts.subset(torch.from_numpy(np.nonzero(region == k)[0])))
+
+
+def run_region_clusters(*, clusters: Path, regions: Path, out_npz: Path, params: dict) -> None:
+    """The content's clusters cut by region ``params["index"]`` (:func:`wast3d.regions.split_clusters`), for
+    the region's content points in their order there."""
+    from .regions import split_clusters
+
+    cl = load_npz(clusters, required=("labels",))
+    k = int(params.get("index", -1))
+    region = _region_of(regions, len(cl["labels"]), k)
+    idx, labels, report = split_clusters(cl["labels"], region, k, cl.get("normals"))
+    extra = {"normals": cl["normals"][idx]} if "normals" in cl else {}
+    save_npz(out_npz, labels=labels, sizes=np.bincount(labels), **extra)
+    write_json(Path(out_npz).with_suffix(".json"), {**report, "region": k, "clusters_source": str(clusters)})
+    log.info("region %d: %d points in %d clusters (%d of the content's clusters cut by its border)", k,
+             report["points"], report["clusters"], report["clusters_cut_by_the_border"])
+
+
+def merge_regions(parts: list[tuple[str, Path]], out_ply: Path) -> None:
+    """One scene of the regions' results [(style, final PLY)], in that order; ``final.json`` beside it
+    lists each part's style and Gaussians (the seams stage reads which Gaussian came from which region)."""
+    from .gaussians import GaussianScene
+
+    scenes = [read_ply(p) for _, p in parts]
+    if len({s.sh_degree for s in scenes}) > 1:
+        top = max(s.sh_degree for s in scenes)
+        scenes = [s.with_sh_degree(top) for s in scenes]
+    if any(s.element is None for s in scenes) and any(s.element is not None for s in scenes):
+        for s in scenes:
+            s.element = None  # element labels mean one style's elements: kept only where every part has them
+    out = GaussianScene.concat(scenes)
+    write_ply(out_ply, out)
+    write_json(Path(out_ply).with_suffix(".json"), {"parts": [{"style": st, "source": str(p), "gaussians": len(s)}
+                                                              for (st, p), s in zip(parts, scenes)],
+                                                    "gaussians": len(out)})
+
+
+def run_seams(*, content: Path, regions: Path, result: Path, result_render: Path, content_render: Path,
+              out_json: Path, params: dict) -> None:
+    """The seams of a result of several styles, each figure beside the same of each style alone on the whole
+    content (``params["alone"]``: their final PLYs, ``params["alone_renders"]``: their render folders, in the
+    set's order). The band: the content points within ``params["band"]`` content spacings (default 3) of
+    another region. Coverage along the seam (:func:`wast3d.regions.band_coverage`: the band drawn from the
+    content render's cameras, its points in white over the rest in black) and the Gaussians' density there
+    (:func:`wast3d.regions.seam_density`); the whole result's coverage."""
+    from .elements import element_pixels, label_colours
+    from .geometry import mean_spacing
+    from .image_metrics import coverage
+    from .rasterizer import rasterize
+    from .regions import band_coverage, band_of, seam_density
+    from .render import read_cameras, read_frames
+
+    pts, res = read_ply(content), read_ply(result)
+    region = load_npz(regions, required=("region",))["region"]
+    if len(region) != len(pts):
+        raise ValueError(f"{regions}: {len(region)} regions for {len(pts)} content points")
+    parts = read_json(Path(result).with_suffix(".json")).get("parts")
+    if not parts or sum(p["gaussians"] for p in parts) != len(res):
+        raise ValueError(f"{Path(result).with_suffix('.json')}: 'parts' must count the result's {len(res)} Gaussians")
+    x = pts.means.double().numpy()
+    in_band = band_of(x, region, float(params.get("band", 3.0)) * mean_spacing(pts.means))
+    alone = params.get("alone", [])
+    out = {"styles": [p["style"] for p in parts], "band_points": int(in_band.sum()),
+           "regions": seam_density(x, region, in_band, res.means.double().numpy(),
+                                   {k: read_ply(p).means.double().numpy() for k, p in enumerate(alone)})}
+    content_frames = read_frames(content_render)
+    cams = read_cameras(content_render, len(content_frames))
+    lab = label_colours(torch.from_numpy(in_band.astype(np.int64)), pts.dtype)
+    band = []
+    for cam in cams:  # the share of each pixel the band's points draw, in the content render's frames
+        m = rasterize(pts, cam, colors=lab)
+        band.append(element_pixels(m.rgb, m.alpha))
+    band = torch.stack(band)
+    out["coverage_band"] = band_coverage(read_frames(result_render)[..., 3], content_frames[..., 3], band)
+    out["coverage_band_alone"] = [band_coverage(read_frames(f)[..., 3], content_frames[..., 3], band)
+                                  for f in params.get("alone_renders", [])]
+    out["coverage"] = coverage(read_frames(result_render)[..., 3], content_frames[..., 3])
+    write_json(out_json, out)
+    log.info("seams: coverage along the seam %s (each style alone: %s), density against each style alone %s",
+             out["coverage_band"], out["coverage_band_alone"],
+             {out["styles"][r]: v.get("density_ratio") for r, v in out["regions"].items()})

@@ -68,6 +68,75 @@ def scene_name(path: Path, taken: set[str]) -> str:
     return name
 
 
+AXES = {"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1), "-x": (-1, 0, 0), "-y": (0, -1, 0), "-z": (0, 0, -1)}
+
+
+def split_regions(split: str, styles: list[str]) -> list[dict]:
+    """``--split AXIS=VALUE`` for two styles -> the region entries: the first style where the coordinate
+    along AXIS (x, y, z or -x, -y, -z) is at least VALUE, the second everywhere else."""
+    axis, _, value = split.partition("=")
+    if axis not in AXES or not value:
+        raise ValueError(f"--split {split}: expected AXIS=VALUE with AXIS one of {', '.join(AXES)}")
+    if len(styles) != 2:
+        raise ValueError(f"--split cuts the content in two: give two styles, not {len(styles)}")
+    try:
+        offset = float(value)
+    except ValueError:
+        raise ValueError(f"--split {split}: {value!r} is not a number") from None
+    return [{"style": styles[0], "half_space": {"normal": list(AXES[axis]), "offset": offset}},
+            {"style": styles[1], "rest": True}]
+
+
+def regions_file(path: Path, styles: list[str], style_paths: list[Path]) -> list[dict]:
+    """``--regions FILE``: a YAML list of region entries (wast3d/regions.py) whose ``style`` is the index of a
+    style given on the command line (0: the first) or its path -> the entries with the styles' scene names."""
+    import yaml
+
+    try:
+        entries = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ValueError(f"{path}: not a regions file ({e})") from None
+    if not isinstance(entries, list):
+        raise ValueError(f"{path}: a YAML list of regions, each {{style: INDEX, <kind>: ...}}")
+    out = []
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict) or "style" not in e:
+            raise ValueError(f"{path}: entry {i} needs 'style' (the index of a style given, or its path)")
+        st = e["style"]
+        if isinstance(st, int) and 0 <= st < len(styles):
+            name = styles[st]
+        elif isinstance(st, str) and Path(st).resolve() in [Path(p).resolve() for p in style_paths]:
+            name = styles[[Path(p).resolve() for p in style_paths].index(Path(st).resolve())]
+        else:
+            raise ValueError(f"{path}: entry {i}: style {st!r} is neither the index nor the path of a style given")
+        out.append({**e, "style": name})
+    return out
+
+
+def run_config(base: dict, content: Path, styles: list[Path], split: str | None = None,
+               regions: Path | None = None) -> dict:
+    """The workflow's config for ``wast3d run``: one style, :func:`two_scene_config`; several, the content
+    rebuilt from each in its region (``split`` or a ``regions`` file), each style alone beside it."""
+    if len(styles) == 1:
+        if split or regions:
+            raise ValueError("--split and --regions need two styles or more")
+        return two_scene_config(base, content, styles[0])
+    if bool(split) == bool(regions):
+        raise ValueError(f"{len(styles)} styles: say where each goes with --split AXIS=VALUE (two styles) or "
+                         "--regions FILE")
+    cfg = two_scene_config(base, content, styles[0])
+    c = next(iter(cfg["scenes"]))
+    names = [next(k for k in cfg["scenes"] if k != c)]
+    for st in styles[1:]:
+        names.append(scene_name(st, set(cfg["scenes"])))
+        cfg["scenes"][names[-1]] = scene_entry(st, "style")
+    entries = split_regions(split, names) if split else regions_file(regions, names, styles)
+    cfg["regions"] = {f"{c}_by_region": {"content": c, "styles": entries}}
+    cfg["pairs"] = [[c, n] for n in names]
+    cfg["table1"]["pairs"] = []
+    return cfg
+
+
 def two_scene_config(base: dict, content: Path, style: Path) -> dict:
     """``base`` (the project's config) with the scenes, pairs, runs and tables of one content x style pair."""
     cfg = copy.deepcopy(base)
@@ -123,8 +192,8 @@ class ConfigPlan:
     why: str
 
 
-def plan_config(path: Path, cfg: dict, content: Path, style: Path) -> ConfigPlan:
-    """Decide about the config file ``path`` for a run of ``content`` x ``style`` whose defaults are
+def plan_config(path: Path, cfg: dict, *scenes: Path) -> ConfigPlan:
+    """Decide about the config file ``path`` for a run of the ``scenes`` (content, style, ...) whose defaults are
     ``cfg``. A file a user edited (or wrote) is kept when it names both scenes, and refused otherwise:
     a ValueError says how to start over. Never writes."""
     new = config_text(cfg)
@@ -149,7 +218,7 @@ def plan_config(path: Path, cfg: dict, content: Path, style: Path) -> ConfigPlan
                          "the defaults with --reset-config (your file is kept beside it as a .bak)") from None
     paths = {str(Path(v["path"]).resolve()) for v in ((mine or {}).get("scenes") or {}).values()
              if isinstance(v, dict) and v.get("path")} if isinstance(mine, dict) else set()
-    missing = [str(p) for p in (Path(content).resolve(), Path(style).resolve()) if str(p) not in paths]
+    missing = [str(p) for p in (Path(x).resolve() for x in scenes) if str(p) not in paths]
     if missing:
         raise ValueError(f"{path}: edited by hand, and its scenes do not include {' and '.join(missing)}; run its "
                          "workflow with snakemake in that folder, or start over from the defaults with "

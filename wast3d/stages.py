@@ -204,6 +204,32 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
               Out("ply", "the recoloured content (PLY)"),
               Out("json", "time, device, config (JSON)", beside="ply"),
           ), "wast3d.baselines:ColourTransferConfig", "evaluation.colour_transfer"),
+    Stage("regions", "stage 3b: each content point's region of a set of (style, region) (wast3d/regions.py)",
+          "run_regions", (
+              _CONTENT,
+              In("scene", "the content scene a labels region's file numbers (PLY)", required=False),
+              Out("npz", "the region of each content point, and the regions' styles (NPZ)"),
+              Out("json", "each region's kind, settings and points (JSON)", beside="npz"),
+              Out("picture", "the content points in their regions' colours (PNG)", required=False),
+          )),
+    Stage("region-content", "stage 3b: the content points of one region (params: index)", "run_region_content", (
+        _CONTENT, In("regions", "each content point's region (NPZ)"),
+        Out("ply", "the region's content points (PLY)"),
+    )),
+    Stage("region-clusters", "stage 3b: the content's clusters cut by one region's border (params: index)",
+          "run_region_clusters", (
+              _CLUSTERS, In("regions", "each content point's region (NPZ)"),
+              Out("npz", "the region's points' cluster labels (and normals) (NPZ)"),
+              Out("json", "points, clusters, clusters the border cut (JSON)", beside="npz"),
+          )),
+    Stage("seams", "stage 8: where the styles of a result by regions meet: coverage and density along the seams",
+          "run_seams", (
+              _CONTENT, In("regions", "each content point's region (NPZ)"),
+              In("result", "the merged result (PLY, final.json beside it)"),
+              In("result_render", "the merged result's render folder"),
+              In("content_render", "the content's render folder, the same cameras"),
+              Out("json", "the seam metrics (JSON)"),
+          )),
     Stage("evaluate", "stage 8: weights-free metrics and CLIP crop similarity of one result", "run_evaluate", (
         In("result", "the result scene (PLY)"),
         In("content", "content scene (PLY)"),

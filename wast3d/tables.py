@@ -147,3 +147,26 @@ def table1_spec_row(results: Path, spec: str) -> dict:
     """:func:`table1_row` of ``CONTENT__STYLE/METHOD/PARTITION/LABEL`` (PARTITION '-': no partition)."""
     c, s, method, part, label = parse_spec(spec, ("METHOD", "PARTITION", "LABEL"))
     return table1_row(results, c, s, method, None if part == "-" else part, label)
+
+
+# ---- several styles by region -------------------------------------------------------------------
+
+REGION_COLUMNS = ("element_share_ratio", "element_intact", "element_whole_ratio", "coverage", "coverage_element",
+                  "coarse_chamfer", "relief_w1", "texture_swd")
+
+
+def regions_spec_row(results: Path, spec: str) -> list[dict]:
+    """The rows of ``CONTENT__SET/EXPERIMENT``: one per region, its pair's evaluation against its own style
+    and the seams' figures for it (``eval/CONTENT__SET/EXPERIMENT_seams.json``)."""
+    content, rset, experiment = parse_spec(spec, ("EXPERIMENT",))
+    seams = read_json(Path(results) / "eval" / f"{content}__{rset}" / f"{experiment}_seams.json")
+    rows = []
+    for k, style in enumerate(seams["styles"]):
+        ev = read_json(Path(artifact("eval", results, content=f"{rset}-{k}", style=style, method=experiment)))
+        reg = seams["regions"].get(str(k), seams["regions"].get(k, {}))
+        rows.append({"content": content, "set": rset, "region": k, "style": style, "run": experiment,
+                     "points": reg.get("points"), **{c: ev.get(c) for c in REGION_COLUMNS},
+                     "seam_density_ratio": reg.get("density_ratio"), "seam_coverage": seams.get("coverage_band"),
+                     "seam_coverage_alone": (seams.get("coverage_band_alone") or [None] * (k + 1))[k],
+                     "coverage_whole": seams.get("coverage")})
+    return rows

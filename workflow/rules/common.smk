@@ -47,9 +47,33 @@ WAST3D = f"{PYTHON} -m wast3d"
 # that light jobs run side by side.
 HEAVY_THREADS = 2
 
-SCENES = config["scenes"]
+SCENES = dict(config["scenes"])
 PARTITIONS = config.get("partitions", {"default": {}})
 PAIRS = [tuple(p) for p in config.get("pairs", [])]
+
+# Several styles on one content, by region (wast3d/regions.py): region k of set NAME is a content of its
+# own, scene NAME-k (its points: the content points it claims; its clusters: the content's cut by it),
+# paired with its style; the pairs' results are merged into results/stylize/CONTENT__NAME/.
+_REGIONS = _load("regions.py")
+REGION_SETS, REGION_CONTENTS = {}, {}
+for _set, _r in (config.get("regions") or {}).items():
+    _where = _CHECK.source(("regions", _set), _CONFIG_FILES)
+    try:
+        _parsed = _REGIONS.parse_set(_r["styles"], f"regions.{_set}.styles")
+    except ValueError as e:
+        raise _CHECK.ConfigError(f"{_where}: {e}") from None
+    for _what, _name in [("the set", _set), ("its content", _r["content"])] + [("a style", _x.style) for _x in _parsed]:
+        if (_name == _set) == (_name in SCENES):
+            raise _CHECK.ConfigError(f"{_where}: regions.{_set}: {_what} '{_name}' "
+                                     + ("is a scene's name" if _name == _set else "is not defined under 'scenes'"))
+    REGION_SETS[_set] = {"content": _r["content"], "regions": _parsed}
+    for _k, _x in enumerate(_parsed):
+        _rc = f"{_set}-{_k}"
+        if _rc in SCENES:
+            raise _CHECK.ConfigError(f"{_where}: region content '{_rc}' would shadow the scene of that name")
+        SCENES[_rc] = {"source": "region", "set": _set, "index": _k, "content": _r["content"]}
+        REGION_CONTENTS[_rc] = (_set, _k)
+        PAIRS.append((_rc, _x.style))
 # the texture reference shows the style at the scale this partition's registration puts it on the content
 REFERENCE_PARTITION = "default" if "default" in PARTITIONS else next(iter(PARTITIONS))
 
@@ -137,7 +161,7 @@ wildcard_constraints:
 
 def needs_surface(scene):
     s = SCENES[scene]
-    return s["source"] != "procedural" and s.get("surface", {}).get("enabled", True)
+    return s["source"] not in ("procedural", "region") and s.get("surface", {}).get("enabled", True)
 
 
 def scenes_needing_surface():
@@ -248,13 +272,18 @@ def stage_args(command, ignore=(), **paths):
 
 # scenes that no pair of the run or of Table 1 uses are defined but not built (a config merged over the
 # demo's, like config/lego.yaml, keeps the demo's scenes in `scenes`)
-USED_SCENES = [s for s in SCENES if any(s in p for p in PAIRS + TABLE1_PAIRS)]
+USED_SCENES = [s for s in SCENES if any(s in p for p in PAIRS + TABLE1_PAIRS)
+               or any(r["content"] == s for r in REGION_SETS.values())]
 USED_SCENES += [src for s in USED_SCENES if (src := SCENES[s].get("labels_from")) and src not in USED_SCENES]
 
 # say what is left out, and why
 for _name, _s in SCENES.items():
     if _name not in USED_SCENES:
         logger.info(f"scene '{_name}': left out entirely (in no pair)")
+        continue
+    if _s["source"] == "region":
+        logger.info(f"scene '{_name}': region {_s['index']} of set '{_s['set']}', the points of '{_s['content']}' it "
+                    "claims, cut from its surface samples and clusters (nothing upstream re-runs)")
         continue
     if _s["source"] == "procedural":
         logger.info(f"scene '{_name}': left out pretraining (generated as Gaussians)")
@@ -296,6 +325,9 @@ def up_from_cameras(folder):
 def decide_up(name):
     """(the scene's up axis, why): scenes.NAME.up, or read from the scene (the schema's `up`)."""
     s = SCENES[name]
+    if s["source"] == "region":
+        up, why = decide_up(s["content"])
+        return up, f"its content's: {why}"
     if s.get("up", "auto") != "auto":
         return s["up"], "set in the config"
     if s["source"] == "ply":

@@ -56,6 +56,8 @@ rule cluster:
         json=beside("clusters", ".json"),
         picture=report(beside("clusters", ".png"),
                    caption="../report/clusters.rst", category="Partition"),
+    wildcard_constraints:
+        content=constraint([c for c in SCENES if SCENES[c]["source"] != "region"]),  # regions.smk cuts those
     params:
         exe=WAST3D,
         cfg=lambda w: stage_params("cluster", PARTITIONS[w.partition].get("cluster", {})),

@@ -15,6 +15,8 @@ rule sinkhorn:
         json=beside("losses", ".json"),
         png=report(beside("losses", ".png"),
                    caption="../report/losses.rst", category="Results", subcategory="{experiment}"),
+    wildcard_constraints:
+        style=constraint(list(SCENES)),  # a region set's result is merged (regions.smk)
     params:
         exe=WAST3D,
         cfg=lambda w: stage_params("stylize", EXPERIMENTS[w.experiment].get("stylize", {})),
@@ -41,6 +43,8 @@ rule rescale:
     output:
         ply=results("final"),
         json=beside("final", ".json"),
+    wildcard_constraints:
+        style=constraint(list(SCENES)),  # a region set's result is merged (regions.smk)
     params:
         exe=WAST3D,
         cfg=lambda w: stage_params("rescale", EXPERIMENTS[w.experiment].get("rescale", {})),

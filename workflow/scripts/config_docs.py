@@ -236,8 +236,10 @@ def stages_page() -> str:
         parts.append(st.help[0].upper() + st.help[1:] + ".\n")
         if isinstance(st.config, dict):
             where = ", ".join(f"`{st.block}.{k}` ({spec.split(':')[1]})" for k, spec in st.config.items())
-        else:
+        elif st.config:
             where = f"`{st.block}` ({st.config.split(':')[1]})"
+        else:
+            where = "the rule's own (`regions` in the config, and the region's index)"
         parts.append(f"Runs `pipeline.{st.run}`; parameters: {where}"
                      + ("; `--no-progress` hides the progress bar." if st.progress else ".") + "\n")
         rows = ["| option | file | what |", "| --- | --- | --- |"]
