@@ -380,6 +380,7 @@ def columns_command(name: str, help_: str, out: str, fn: str):
 
 columns_command("compare", "side-by-side comparison sheet of render folders (content, style, ours, baselines)",
                 "out_png", "comparison_sheet")
+columns_command("strip", "one row of pictures with captions (a figure): CAPTION=PNG ...", "out_png", "strip")
 columns_command("turntables", "one HTML page of render folders' turntables (MP4, or the GIF), side by side",
                 "out_html", "turntable_page")
 

@@ -234,6 +234,20 @@ def comparison_sheet(columns: list[tuple[str, str | Path]], out: str | Path, til
     save_png(out, np.concatenate(rows, 0))
 
 
+def strip(tiles: list[tuple[str, str | Path]], out: str | Path, tile: int = 320) -> None:
+    """One row of pictures with captions above (a README figure): ``tiles`` are (caption, PNG path); a key
+    view (``key_*``) is cropped to its subject (:func:`subject_box`), every picture fitted to a ``tile`` px
+    square."""
+    cells = []
+    for caption, path in tiles:
+        im = iio.imread(path)[..., :3]
+        if Path(path).name.startswith("key_"):
+            y0, y1, x0, x1 = subject_box([im])
+            im = im[y0:y1, x0:x1]
+        cells.append(label_image(fit_tile(im, tile), caption, 30, 16))
+    save_png(out, np.concatenate(cells, 1))
+
+
 def write_mp4(path: str | Path, frames: np.ndarray, fps: float) -> bool:
     """frames [T, H, W, 3] uint8 -> an H.264 MP4 (yuv420p, faststart: what browsers play) at ``path``,
     atomically, with the ffmpeg that the ``imageio-ffmpeg`` wheel carries; odd sizes are padded by one
