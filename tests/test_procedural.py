@@ -44,3 +44,14 @@ def test_unknown_names():
         make_scene("style", "moss", 100)
     with pytest.raises(ValueError, match="unknown content mesh 'teapot'"):
         make_scene("content", "teapot", 100)
+
+
+@pytest.mark.parametrize("name, elements", [("bouquet", 25), ("pinecone", 100)])
+def test_volume_styles_are_objects_with_labelled_elements(name, elements):
+    """The volumes have no ground and extend in every direction; each flower or scale is one element."""
+    s = make_scene("style", name, 6000, seed=0)
+    assert int(s.element.max()) >= elements and 0.6 < float((s.element > 0).float().mean()) < 0.9
+    ext = s.means.max(0).values - s.means.min(0).values
+    assert float(ext.min() / ext.max()) > 0.5  # an object, not a flat patch
+    sizes = torch.bincount(s.element)[1:]
+    assert int(sizes.min()) >= 10  # every element has Gaussians enough to be seen whole

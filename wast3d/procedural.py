@@ -1,12 +1,17 @@
 """Procedural scenes: the project's embedded default data (no downloads).
 
-Style scenes are square patches (x, y in [-1, 1], z up) of surface Gaussians with real local geometry,
-in the spirit of the paper's style scenes:
+Style scenes have real local geometry, in the spirit of the paper's style scenes. Patches (x, y in
+[-1, 1], z up: a ground with elements on it):
 
 - ``pebbles``: flattened ellipsoidal pebbles of a river-bed palette lying on sand;
 - ``grass``: curved blades (chains of small Gaussians) standing on soil;
 - ``wicker``: a basket weave, warp and weft tubes passing over and under each other;
 - ``stones``: rough boulders (spheres displaced by random bumps) half sunk in gravel.
+
+Volumes (objects seen from every side, no ground):
+
+- ``bouquet``: flower heads of several colours with petals on a dome, stems converging below, leaves;
+- ``pinecone``: woody scales on a spiral round an ovoid core.
 
 Content scenes are meshes that pyvista ships (``ant``, ``airplane``, ``nut``, ``globe``, and the
 parametric ``torus``/``sphere``), normalized to the unit ball, with Gaussians sampled on the surface
@@ -233,6 +238,150 @@ def style_stones(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
     E = _element_ids([len(p) for p in P[:-1]], ground=len(g[0]))
     P, N, C = map(np.concatenate, (P, N, C))
     return _labelled(surface_gaussians(P, N, C, _spacing(P, 4.0 + 4 * math.pi * (radii**2).sum() * 0.7)), E)
+
+
+def _tube(a: np.ndarray, b: np.ndarray, radius: float, n_along: int, ring: int, rng, bend: float = 0.0):
+    """Surface samples of a (slightly bent) tube from ``a`` to ``b``: points, normals, tangents [n, 3]."""
+    t = np.linspace(0, 1, n_along)[:, None]
+    axis = b - a
+    side = np.cross(axis, [0.3, 0.5, 0.8])
+    side /= np.linalg.norm(side)
+    centre = a + t * axis + bend * np.sin(math.pi * t) * side
+    tang = np.gradient(centre, axis=0)
+    tang /= np.linalg.norm(tang, axis=1, keepdims=True).clip(1e-12)
+    u = np.cross(tang, side)
+    u /= np.linalg.norm(u, axis=1, keepdims=True).clip(1e-12)
+    v = np.cross(tang, u)
+    th = np.linspace(0, 2 * math.pi, ring, endpoint=False) + rng.uniform(0, 2 * math.pi)
+    circ = np.cos(th)[None, :, None] * u[:, None] + np.sin(th)[None, :, None] * v[:, None]
+    p = centre[:, None] + radius * circ
+    return p.reshape(-1, 3), circ.reshape(-1, 3), np.repeat(tang, ring, axis=0)
+
+
+def _ellipse(centre, e1, e2, a: float, b: float, m: int, rng, cup: float = 0.0):
+    """m samples of an elliptic plate (semi-axes a along e1, b along e2) bent into a cup of depth ``cup``
+    along e1 x e2: points, normals [m, 3], and its area."""
+    r, th = np.sqrt(rng.random(m)), rng.uniform(0, 2 * math.pi, m)
+    x, y = r * np.cos(th), r * np.sin(th)
+    n0 = np.cross(e1, e2)
+    n0 /= np.linalg.norm(n0)
+    p = centre + (a * x)[:, None] * e1 + (b * y)[:, None] * e2 + (cup * (x**2 + y**2))[:, None] * n0
+    nrm = n0[None] - (2 * cup * (x / a**2 * a))[:, None] * e1 - (2 * cup * (y / b**2 * b))[:, None] * e2
+    return p, nrm, math.pi * a * b
+
+
+@_register
+def style_bouquet(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    """A bouquet: flower heads of several colours on a dome, each a ring of cupped petals around a dark
+    centre, their stems converging below, leaves on some stems; no ground. One flower (petals and centre)
+    is one element; stems and leaves are label 0. Seen from every side: a volume, not a patch."""
+    rng = np.random.default_rng(seed)
+    palette = np.array([[0.86, 0.14, 0.20], [0.96, 0.58, 0.70], [0.97, 0.95, 0.90], [0.98, 0.80, 0.20],
+                        [0.58, 0.30, 0.76], [0.96, 0.50, 0.14]])
+    dirs = _fibonacci_sphere(120)
+    dirs = dirs[dirs[:, 2] > math.cos(math.radians(70))]
+    dirs = dirs + 0.05 * rng.standard_normal(dirs.shape)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    n_fl = len(dirs)
+    base = np.array([0.0, 0.0, -1.1])
+    centres = 0.7 * dirs + np.array([0.0, 0.0, 0.15])
+    radii = rng.uniform(0.11, 0.16, n_fl)
+    heads = int(n_gaussians * 0.78)
+    per_head = heads // n_fl
+    green = np.array([0.22, 0.45, 0.16])
+    P, N, C, T, S, E, STEM_EL = [], [], [], [], [], [], []
+    for i, (c, d, r) in enumerate(zip(centres, dirs, radii)):
+        e1 = np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(d, e1)
+        col = palette[rng.integers(len(palette))]
+        k = int(rng.integers(6, 11))
+        m_pet = int(per_head * 0.85 / k)
+        for j in range(k):
+            phi = 2 * math.pi * j / k + rng.uniform(-0.15, 0.15)
+            out = math.cos(phi) * e1 + math.sin(phi) * e2
+            tilt = math.radians(rng.uniform(20, 40))
+            along = math.cos(tilt) * out + math.sin(tilt) * d
+            p, nrm, area = _ellipse(c + 0.55 * r * along, along, np.cross(d, out), 0.5 * r, 0.28 * r, m_pet, rng,
+                                    cup=0.08 * r)
+            rim = np.linalg.norm(p - c, axis=1) / r
+            P.append(p), N.append(nrm), C.append(col * (0.7 + 0.35 * rim[:, None])), T.append(None)
+            S.append(np.full(m_pet, math.sqrt(area / m_pet))), E.append(np.full(m_pet, i + 1))
+        m_c = max(per_head - k * m_pet, 8)
+        dd = _fibonacci_sphere(m_c)
+        R = np.stack([e1, e2, d], 1)
+        p = c + (dd * np.array([0.22, 0.22, 0.12]) * r) @ R.T
+        P.append(p), N.append(dd @ R.T), C.append(np.tile([0.35, 0.25, 0.08], (len(p), 1))), T.append(None)
+        S.append(np.full(len(p), 0.05 * r)), E.append(np.full(len(p), i + 1))
+    stems = int(n_gaussians * 0.15) // n_fl
+    ring, stem_r = 4, 0.012
+    for i, c in enumerate(centres):  # thin tubes of Gaussians long along the stem
+        along = max(stems // ring, 4)
+        p, nrm, t = _tube(c - 0.05 * dirs[i], base + 0.05 * rng.standard_normal(3), stem_r, along, ring,
+                          rng, bend=rng.uniform(-0.08, 0.08))
+        P.append(p), N.append(nrm), C.append(np.tile(green * rng.uniform(0.8, 1.1), (len(p), 1))), T.append(t)
+        width = 2 * math.pi * stem_r / ring
+        S.append(np.full(len(p), width)), E.append(np.zeros(len(p), np.int64))
+        STEM_EL.append(np.linalg.norm(c - base) / along / width)
+    leaves = n_gaussians - sum(len(p) for p in P)
+    n_leaf = max(n_fl // 3, 1)
+    for i in rng.choice(n_fl, n_leaf, replace=False):
+        at = base + 0.45 * (centres[i] - base)
+        out = at - np.array([0.0, 0.0, at[2]])
+        out = out / max(np.linalg.norm(out), 1e-9) if np.linalg.norm(out) > 1e-6 else np.array([1.0, 0.0, 0.0])
+        up = np.array([0.0, 0.0, 1.0])
+        along = (out + up) / np.linalg.norm(out + up)
+        m = max(leaves // n_leaf, 8)
+        p, nrm, area = _ellipse(at + 0.14 * along, along, np.cross(up, out) if np.linalg.norm(np.cross(up, out)) > 1e-6
+                                else np.array([0.0, 1.0, 0.0]), 0.16, 0.05, m, rng, cup=0.01)
+        P.append(p), N.append(nrm), C.append(np.tile(green * 1.15, (len(p), 1))), T.append(None)
+        S.append(np.full(m, math.sqrt(area / m))), E.append(np.zeros(m, np.int64))
+    parts, stem = [], iter(STEM_EL)
+    for p, nrm, c, t, s in zip(P, N, C, T, S):
+        c = c * (1 + 0.05 * rng.standard_normal((len(p), 1))) + 0.015 * rng.standard_normal((len(p), 3))
+        parts.append(surface_gaussians(p, nrm, c, s, flatness=0.35, tangent=t,
+                                       elongation=1.0 if t is None else 1.2 * next(stem)))
+    return _labelled(GaussianScene.concat(parts), E)
+
+
+@_register
+def style_pinecone(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
+    """A pine cone: woody scales on a Fibonacci spiral round an ovoid core, each tilted outward and up,
+    darker at its tip; no ground. One scale is one element; the core is label 0."""
+    rng = np.random.default_rng(seed)
+    n_sc = 110
+    golden = math.pi * (3 - math.sqrt(5))
+    z = np.linspace(-0.92, 0.92, n_sc)
+    prof = lambda zz: 0.30 * np.clip(1 - zz**2, 0, None) ** 0.55 + 0.03  # noqa: E731 - the core's radius at height z
+    browns = np.array([[0.52, 0.33, 0.18], [0.44, 0.27, 0.14], [0.60, 0.40, 0.22]])
+    core = n_gaussians // 6
+    per = (n_gaussians - core) // n_sc
+    P, N, C, S, E = [], [], [], [], []
+    for i in range(n_sc):
+        phi = i * golden
+        out = np.array([math.cos(phi), math.sin(phi), 0.0])
+        rho = prof(z[i])
+        foot = np.array([rho * out[0], rho * out[1], z[i]])
+        size = 0.16 + 0.18 * np.clip(1 - abs(z[i]), 0, 1)  # larger scales round the middle
+        tilt = math.radians(25)
+        along = math.cos(tilt) * out + math.sin(tilt) * np.array([0.0, 0.0, 1.0])
+        side = np.array([-out[1], out[0], 0.0])
+        p, nrm, area = _ellipse(foot + 0.5 * size * along, along, side, 0.5 * size, 0.32 * size, per, rng,
+                                cup=-0.06 * size)
+        tip = np.clip(((p - foot) @ along) / size, 0, 1)
+        col = browns[rng.integers(len(browns))] * (1.05 - 0.45 * tip[:, None])
+        P.append(p), N.append(nrm), C.append(col), S.append(np.full(per, math.sqrt(area / per))),
+        E.append(np.full(per, i + 1))
+    zz = rng.uniform(-0.95, 0.95, core)
+    th = rng.uniform(0, 2 * math.pi, core)
+    r = prof(zz) * 0.9
+    p = np.stack([r * np.cos(th), r * np.sin(th), zz], 1)
+    P.append(p), N.append(np.stack([np.cos(th), np.sin(th), np.zeros(core)], 1))
+    C.append(np.tile([0.30, 0.20, 0.11], (core, 1))), S.append(np.full(core, math.sqrt(4.0 / core)))
+    E.append(np.zeros(core, np.int64))
+    parts = [surface_gaussians(p, nrm, c * (1 + 0.05 * rng.standard_normal((len(p), 1))), s, flatness=0.35)
+             for p, nrm, c, s in zip(P, N, C, S)]
+    return _labelled(GaussianScene.concat(parts), E)
 
 
 def _element_ids(sizes: list[int], ground: int = 0) -> list[np.ndarray]:

@@ -65,7 +65,7 @@ re-runs that stage and what depends on it, nothing upstream (`docs/workflow.md`,
 
 | source | keys | what happens |
 | --- | --- | --- |
-| `procedural` | `kind` (`content` or `style`), `name` (content: `ant`, `airplane`, `nut`, `globe`, `torus`, `sphere`; style: `pebbles`, `grass`, `wicker`, `stones`), `n_gaussians`, `seed`, `up` | generated; no pretraining, no surface sampling |
+| `procedural` | `kind` (`content` or `style`), `name` (content: `ant`, `airplane`, `nut`, `globe`, `torus`, `sphere`; style: the patches `pebbles`, `grass`, `wicker`, `stones`, the volumes `bouquet`, `pinecone`), `n_gaussians`, `seed`, `up` | generated; no pretraining, no surface sampling |
 | `ply` | `path` (a trained 3DGS file: `.ply`, SuperSplat's `.compressed.ply`, `.spz`, `.splat`), `drop_invalid` (drop Gaussians with unusable values instead of stopping), `up`, `surface`, `style_clean` | imported; as a content surface-sampled unless `surface.enabled: false`, as a style cleaned unless `style_clean.enabled: false` |
 | `images` | `path` (a Blender-format folder: `transforms_train.json`, images), `kind` (`content` or `style`), `up`, `pretrain`, `surface`, `style_clean`, `labels_from` | pretrained (with eq. 1-2 when `kind` is `style`), then surface-sampled (content) or cleaned (style) |
 
