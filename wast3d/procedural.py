@@ -320,9 +320,10 @@ def style_bouquet(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
         p, nrm, t = _tube(c - 0.05 * dirs[i], base + 0.05 * rng.standard_normal(3), stem_r, along, ring,
                           rng, bend=rng.uniform(-0.08, 0.08))
         P.append(p), N.append(nrm), C.append(np.tile(green * rng.uniform(0.8, 1.1), (len(p), 1))), T.append(t)
-        width = 2 * math.pi * stem_r / ring
+        step = np.linalg.norm(c - base) / along
+        width = max(2 * math.pi * stem_r / ring, step / 2.5)  # at most 2.5 times as long as wide: no needles
         S.append(np.full(len(p), width)), E.append(np.zeros(len(p), np.int64))
-        STEM_EL.append(np.linalg.norm(c - base) / along / width)
+        STEM_EL.append(step / width)
     leaves = n_gaussians - sum(len(p) for p in P)
     n_leaf = max(n_fl // 3, 1)
     for i in rng.choice(n_fl, n_leaf, replace=False):
@@ -340,7 +341,7 @@ def style_bouquet(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
     for p, nrm, c, t, s in zip(P, N, C, T, S):
         c = c * (1 + 0.05 * rng.standard_normal((len(p), 1))) + 0.015 * rng.standard_normal((len(p), 3))
         parts.append(surface_gaussians(p, nrm, c, s, flatness=0.35, tangent=t,
-                                       elongation=1.0 if t is None else 1.2 * next(stem)))
+                                       elongation=1.0 if t is None else next(stem)))
     return _labelled(GaussianScene.concat(parts), E)
 
 
