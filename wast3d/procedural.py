@@ -321,7 +321,7 @@ def style_bouquet(n_gaussians: int = 30000, seed: int = 0) -> GaussianScene:
                           rng, bend=rng.uniform(-0.08, 0.08))
         P.append(p), N.append(nrm), C.append(np.tile(green * rng.uniform(0.8, 1.1), (len(p), 1))), T.append(t)
         step = np.linalg.norm(c - base) / along
-        width = max(2 * math.pi * stem_r / ring, step / 2.5)  # at most 2.5 times as long as wide: no needles
+        width = max(2 * math.pi * stem_r / ring, step / 2.0)  # at most twice as long as wide: no needles
         S.append(np.full(len(p), width)), E.append(np.zeros(len(p), np.int64))
         STEM_EL.append(step / width)
     leaves = n_gaussians - sum(len(p) for p in P)
