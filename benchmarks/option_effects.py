@@ -6,7 +6,8 @@ For each pair and variant of the `options` sweep (studies/options/config.yaml, r
 that define "works" (element share, intact, whole, coverage, coarse shape, relief_w1) and each one's
 difference from the default; the spread is each metric's difference between the default and `seed1`
 (other k-means and registration seeds). A variant *changes* a pair when some metric moves by more than
-its spread (and by more than 0.005). Writes the CSV, a Markdown table beside it, and prints per variant
+`--factor` (1.5) times its spread and by more than 0.005; it *does not act* on a pair when every metric
+equals the default's. Writes the CSV, a Markdown table beside it, and prints per variant
 on how many pairs it changes anything.
 """
 
@@ -30,6 +31,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", type=Path, default=ROOT / "results")
     ap.add_argument("--out", type=Path, default=OUT / "option_effects.csv")
+    ap.add_argument("--factor", type=float, default=1.5, help="a change must exceed this many seed spreads")
     a = ap.parse_args()
     rows = []
     for f in sorted((a.results / "eval").glob("*/options-*.json")):
@@ -50,16 +52,17 @@ def main() -> None:
                   for m in METRICS.values()}
         for _, r in d.iterrows():
             row = {"pair": pair, "variant": r.variant}
-            beyond = []
+            beyond, same = [], True
             for m in METRICS.values():
                 row[m] = r[m]
                 if pd.isna(r[m]) or pd.isna(base[m]):
                     continue
                 delta = float(r[m]) - float(base[m])
                 row[f"d_{m}"] = delta
-                if r.variant not in ("default", "seed1") and abs(delta) > max(spread[m] or 0.0, 0.005):
+                same = same and delta == 0.0
+                if r.variant not in ("default", "seed1") and abs(delta) > max(a.factor * (spread[m] or 0.0), 0.005):
                     beyond.append(f"{m} {delta:+.3f} (spread {spread[m]:.3f})")
-            row["beyond_spread"] = "; ".join(beyond)
+            row["beyond_spread"] = "(does not act)" if same and r.variant != "default" else "; ".join(beyond)
             out.append(row)
     res = pd.DataFrame(out)
     a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -67,9 +70,9 @@ def main() -> None:
     cols = ["pair", "variant", *METRICS.values(), "beyond_spread"]
     a.out.with_suffix(".md").write_text(res[cols].to_markdown(index=False, floatfmt=".3f") + "\n")
     summary = res[~res.variant.isin(["default", "seed1"])].groupby("variant").beyond_spread.apply(
-        lambda s: f"{(s != '').sum()} of {len(s)} pairs")
+        lambda s: f"{((s != '') & (s != '(does not act)')).sum()} of {(s != '(does not act)').sum()} pairs it acts on")
     print(res[cols].to_string(index=False))
-    print("\nchanges beyond the seed spread, per variant:\n" + summary.to_string())
+    print(f"\nchanges beyond {a.factor}x the seed spread, per variant:\n" + summary.to_string())
     print(f"wrote {a.out}")
 
 
