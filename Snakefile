@@ -61,4 +61,5 @@ rule all:
         [f"{RESULTS}/figures/{c}__{s}{k}.png" for c, s in TABLE1_PAIRS for k in ("", "_methods")],
         [f"{RESULTS}/figures/{c}__{s}_turntables.html" for c, s in TABLE1_PAIRS],
         [f"{RESULTS}/tables/regions.csv"] if REGION_SETS else [],
+        [f"{RESULTS}/figures/{c['content']}__{name}_{e}_regions.png" for name, c in REGION_SETS.items() for e in RUN],
     default_target: True

@@ -149,6 +149,30 @@ rule seams:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
+rule regions_sheet:
+    input:
+        content=lambda w: results("render_pair", content=w.content, style=w.style, method="input"),
+        result=lambda w: results("render_pair", content=w.content, style=w.style, method=w.experiment),
+        alone=lambda w: [results("render_pair", content=w.content, style=r.style, method=w.experiment)
+                         for r in REGION_SETS[w.style]["regions"]],
+    output:
+        report(f"{RESULTS}/figures/{{content}}__{{style}}_{{experiment}}_regions.png",
+               caption="../report/comparison.rst", category="Figures"),
+    wildcard_constraints:
+        style=constraint(list(REGION_SETS)),
+    params:
+        exe=WAST3D,
+        columns=lambda w, input: quoted(
+            [f"content={input.content}", f"by regions={input.result}"]
+            + [f"{r.style} alone={p}" for r, p in zip(REGION_SETS[w.style]["regions"], input.alone)]),
+    conda:
+        "../envs/wast3d.yaml"
+    log:
+        f"{RESULTS}/logs/figures/{{content}}__{{style}}_{{experiment}}_regions.log",
+    shell:
+        "{params.exe} --threads {threads} compare {output:q} {params.columns} 2> {log:q}"
+
+
 def regions_table_rows():
     return quoted(f"{c['content']}__{name}/{e}" for name, c in REGION_SETS.items() for e in RUN)
 
