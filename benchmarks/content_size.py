@@ -49,6 +49,18 @@ def content_with_junk(name: str, n: int, seed: int = 0):
     return GaussianScene.concat([surf, extra])
 
 
+def apply_sets(blocks: dict, sets: list[str]) -> dict:
+    """BLOCK.KEY=VALUE overrides (YAML values) applied to the experiment's blocks, in place."""
+    for kv in sets:
+        path, value = kv.split("=", 1)
+        *keys, leaf = path.split(".")
+        node = blocks
+        for k in keys:
+            node = node.setdefault(k, {})
+        node[leaf] = yaml.safe_load(value)
+    return blocks
+
+
 def run_size(n: int, style, blocks: dict, content_name: str, render_size: int) -> list[dict]:
     from wast3d.clustering import ClusterConfig, cluster_content
     from wast3d.options import make_config
@@ -137,13 +149,7 @@ def main() -> None:
     from wast3d.procedural import make_scene
 
     blocks = paper_blocks()
-    for kv in a.set:
-        path, value = kv.split("=", 1)
-        *keys, leaf = path.split(".")
-        node = blocks
-        for k in keys:
-            node = node.setdefault(k, {})
-        node[leaf] = yaml.safe_load(value)
+    apply_sets(blocks, a.set)
     t = time.perf_counter()
     style = make_scene("style", a.style, a.style_size)
     print(f"style: {len(style)} Gaussians in {time.perf_counter() - t:.1f} s; blocks {blocks}", flush=True)

@@ -67,7 +67,6 @@ VARIANTS = {
     # fixed eps-scaling schedule with 3 warm iterations (the old default; its error: 19 % at 0.05)
     **{f"gamma_{g:g}": _with(stylize={"sinkhorn": {"blur": g, "tol": 0.0}}) for g in (0.02, 0.05, 0.1)},
     **{f"gamma_{g:g}": _with(stylize={"sinkhorn": {"blur": g}}) for g in (0.6, 1.0)},
-    "gamma_0.05_scene": _with(stylize={"blur_units": "scene", "sinkhorn": {"blur": 0.05}}),
     "reg_2x": _with(reg=2.0),
     "reg_0.5x": _with(reg=0.5),
     "k_16": _with(select={"k": 16}),

@@ -666,3 +666,59 @@ def test_stylize_solver_defaults_live_in_one_dataclass():
     assert StylizeConfig().sinkhorn == StylizeSinkhornConfig()
     with pytest.raises(ValueError, match="stylize.sinkhorn: unknown parameter.*blurr"):
         StylizeConfig(sinkhorn={"blurr": 0.3})
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("debias", [True, False])
+def test_the_gradient_field_at_the_moving_points_is_the_solved_gradient(backend, debias):
+    """grad_y_at extends the solved potentials to any point: at y itself it is grad_y per unit mass."""
+    from wast3d.sinkhorn import grad_y_at, sinkhorn_batched
+
+    x, y = clouds(120, 90)
+    x2, y2 = clouds(60, 150, seed=1)
+    xs, ys = torch.cat([x, x2]), torch.cat([y, y2])
+    xo, yo = torch.tensor([0, 120, 180]), torch.tensor([0, 90, 240])
+    b = torch.rand(240, generator=torch.Generator().manual_seed(2), dtype=D64) + 0.5
+    b[:90] /= b[:90].sum()
+    b[90:] /= b[90:].sum()
+    cfg = SinkhornConfig(blur=0.2, tol=1e-9, max_iters=1000, backend=backend, debias=debias)
+    res = sinkhorn_batched(xs, ys, xo, yo, cfg, b=b)
+    field = grad_y_at(ys, yo, xs, ys, res, cfg, b=b)
+    assert torch.allclose(field * b[:, None], res.grad_y, atol=1e-9, rtol=1e-6)
+    assert not torch.allclose(grad_y_at(ys + 0.05, yo, xs, ys, res, cfg, b=b), field, atol=1e-4)
+
+
+def test_a_capped_style_transport_moves_every_gaussian_by_its_own_gradient():
+    """style_points: at or above a cluster's size the flow is the uncapped one exactly; below it the drawn
+    Gaussians carry the others' masses (each cluster's sum stays 1), every Gaussian still moves on its own
+    (no Voronoi cell as a block) and the result stays near the uncapped one."""
+    from wast3d.stylize import StylizeConfig, stylize_cluster, transport_leaders
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(300, 3, generator=g, dtype=D64) * torch.tensor([1.0, 1.0, 0.05], dtype=D64)
+    y = torch.rand(800, 3, generator=g, dtype=D64) * torch.tensor([1.0, 1.0, 0.3], dtype=D64)
+    rgb_x, rgb_y = torch.rand(300, 3, generator=g, dtype=D64), torch.rand(800, 3, generator=g, dtype=D64)
+    base = dict(iterations=10, dtype="float64", parts={"size": 0}, smoothing={"passes": 0})
+    full = stylize_cluster(x, rgb_x, y, rgb_y, StylizeConfig(style_points=0, **base))
+    same = stylize_cluster(x, rgb_x, y, rgb_y, StylizeConfig(style_points=800, **base))
+    assert torch.equal(full.positions, same.positions)
+    capped = stylize_cluster(x, rgb_x, y, rgb_y, StylizeConfig(style_points=200, **base))
+    assert torch.isfinite(capped.positions).all()
+    moved, off = (full.positions - y).norm(dim=1), (capped.positions - full.positions).norm(dim=1)
+    assert off.square().mean().sqrt() < 0.2 * moved.square().mean().sqrt()
+    step = capped.positions - y
+    assert len(torch.unique(step.round(decimals=9), dim=0)) == 800
+    lead = transport_leaders([y[:500], y[500:]], None, 200)
+    assert lead.offsets.tolist() == [0, 200, 400] and len(lead.rows) == 400
+    assert torch.allclose(torch.stack([lead.mass[:200].sum(), lead.mass[200:].sum()]), torch.ones(2, dtype=D64))
+    assert transport_leaders([y[:150], y[150:300]], None, 200) is None
+
+
+def test_the_content_transport_sees_at_most_the_cap_per_cluster():
+    from wast3d.stylize import transport_points
+
+    labels = torch.cat([torch.zeros(5000), torch.ones(300), torch.full((4097,), 2)]).long()
+    keep = transport_points(labels, 4096)
+    assert torch.bincount(labels[keep]).tolist() == [4096, 300, 4096]
+    assert transport_points(labels, 0).all() and transport_points(labels[5000:5300], 4096).all()
+    assert torch.equal(keep, transport_points(labels, 4096))  # seeded

@@ -50,7 +50,7 @@ log = logging.getLogger(__name__)
 class SinkhornConfig:
     """Solver settings. ``blur`` is gamma (a length in normalized units); eps = blur^2."""
 
-    blur: float = option(0.05, "gamma, in the unit of blur_units (default: a fraction of each cluster's radius)",
+    blur: float = option(0.05, "gamma, a length in the units of the features (stage 5: of each normalized cluster)",
                                exclusiveMinimum=0)
     scaling: float = option(0.5, "eps-scaling ratio of a cold solve (geomloss' scaling)",
                                  exclusiveMinimum=0, exclusiveMaximum=1)
@@ -533,6 +533,34 @@ def sinkhorn_batched(x: torch.Tensor, y: torch.Tensor, x_off: torch.Tensor | Non
                                  f"eps={float(eps_final[k]):g}, backend={backend})")
     return Result(value, gx, gy, pot, {"iterations": iters, "backend": backend, "converged": converged,
                                        "reused_f_aa": reuse})
+
+
+@torch.no_grad()
+def grad_y_at(q: torch.Tensor, q_off: torch.Tensor, x: torch.Tensor, y: torch.Tensor, res: Result,
+              cfg: SinkhornConfig = SinkhornConfig(), a: torch.Tensor | None = None,
+              b: torch.Tensor | None = None) -> torch.Tensor:
+    """The gradient field of a solved :func:`sinkhorn_batched` (x fixed, y moving) at any points q [Q, D]
+    (problem k's at ``q_off[k]:q_off[k+1]``), per unit mass: ``T_bb(q) - T_ba(q)`` (debiased; ``q - T_ba(q)``
+    without), where ``T_ba(q) = sum_i a_i exp((f_ba_i - |q - x_i|^2 / 2) / eps) x_i / Z`` is the barycentre
+    of x under the potential f_ba extended to q (geomloss' extrapolation) and ``T_bb`` that of y under
+    g_bb. At q = y it is ``res.grad_y / b``. x, y, a, b as the solve had them."""
+    pot = res.potentials
+    backend = res.info.get("backend", "torch")
+    if backend == "geomloss":
+        raise ValueError("grad_y_at: the geomloss backend keeps no potentials")
+    soft = softmin_native if backend == "native" else softmin_torch
+    x_off, y_off = pot.x_off.cpu(), pot.y_off.cpu()
+    n, m = x_off.diff(), y_off.diff()
+    a = (1.0 / n.to(x))[segment_ids(x_off).to(x.device)] if a is None else a.to(x)
+    b = (1.0 / m.to(y))[segment_ids(y_off).to(y.device)] if b is None else b.to(y)
+    eps = pot.eps.to(x.dtype)
+    ex, ey = eps.to(x.device)[segment_ids(x_off).to(x.device)], eps.to(y.device)[segment_ids(y_off).to(y.device)]
+    q_off = q_off.cpu()
+    _, t_ba = soft(eps, q, x, a.log() + pot.f_ba / ex, bary=True, x_off=q_off, y_off=x_off)
+    if not cfg.debias:
+        return q - t_ba
+    _, t_bb = soft(eps, q, y, b.log() + pot.g_bb / ey, bary=True, x_off=q_off, y_off=y_off)
+    return t_bb - t_ba
 
 
 def _batched_geomloss(x, y, x_off, y_off, cfg, a, b, blur_k, diameter, grad_x, grad_y) -> Result:

@@ -8,12 +8,10 @@ For cluster i, in the registered (style) frame:
 - the content cluster is mapped by eq. 7, ``X = S_i R_i (g - t_i)``; its selected style Gaussians
   ``D_i`` (eq. 8) keep their positions ``Y``;
 - both are normalized by :func:`normalize_pair`: centred at the mapped content's mean and divided by
-  its radius (largest distance to that mean). With ``blur_units="cluster"`` gamma (= geomloss' blur)
-  is a fraction of the cluster's radius at any scene scale: gamma = 0.05 is 5 % of it. With
-  ``blur_units="scene"`` (the other reading of the paper) gamma is a length in the content scene
-  normalized to the unit ball, carried into the style frame by the cluster's mean registration
-  scale: the normalized blur of cluster i is ``gamma * R_scene * mean(s_i) / r_i``
-  (:func:`cluster_blur`);
+  its radius (largest distance to that mean), so gamma (= geomloss' blur) is a fraction of the
+  cluster's radius at any scene scale: gamma = 0.3 is 30 % of it (the other reading of the paper,
+  gamma as a length in the whole content scene, changed no result beyond the seed spread:
+  studies/options);
 - features (the paper's ablation): ``xyz`` (positions only), ``xyz+lum`` (default: positions and
   ``colour_weight * Y`` with Rec. 601 luma Y = 0.299 R + 0.587 G + 0.114 B), ``xyz+rgb``;
 - the optimized variables are the style Gaussians' normalized positions and colour offsets (one
@@ -52,6 +50,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -67,7 +66,6 @@ log = logging.getLogger(__name__)
 FEATURES = ("xyz", "xyz+lum", "xyz+rgb")
 
 
-BLUR_UNITS = ("cluster", "scene")
 MASSES = ("uniform", "area", "style-area")
 SMOOTH_AXES = ("all", "up")
 PART_MOTIONS = ("translation", "rigid")
@@ -80,7 +78,7 @@ class StylizeSinkhornConfig(SinkhornConfig):
     """Eq. 9's solver settings: gamma 30 % of the cluster radius (why not the paper's 0.05:
     docs/method.md, stage 5), potentials converged to 1e-3 eps at every step."""
 
-    blur: float = option(0.3, "gamma, in the unit of blur_units (default: a fraction of each cluster's radius)",
+    blur: float = option(0.3, "gamma, a fraction of each cluster's radius (the pair normalized by it)",
                               exclusiveMinimum=0)
     tol: float = option(1e-3, "iterate at the final eps until the potentials change by <= tol * eps (0: fixed iteration"
                               " counts)", minimum=0)
@@ -200,14 +198,18 @@ class StylizeConfig:
     arap_k: int = option(8, "arap: neighbours of the rigidity graph", minimum=1)
     dtype: str = option("float32", "precision of the optimization", enum=["float32", "float64"])
     device: str = option("auto", "auto: CUDA when available", enum=["auto", "cpu", "cuda"])
-    blur_units: str = option("cluster", "gamma relative to each cluster's radius, or a length in the content scene "
-                                        "normalized to the unit ball", enum=BLUR_UNITS)
     batch: int = option(0, "clusters per packed Sinkhorn solve (0: all in one; 1: one at a time, the per-pair "
                            "reference); same result, fewer kernel launches", minimum=0)
     content_points: int = option(4096, "each cluster's content points in the transport, at most (a uniform draw "
                                        "beyond, transport_points: the cost grows as content points times style "
                                        "Gaussians; every project scene has fewer per cluster); 0: every point",
                                  minimum=0)
+    style_points: int = option(4096, "each cluster's style Gaussians in the transport, at most (a uniform draw "
+                                     "beyond, transport_leaders, carrying the others' masses; every Gaussian then "
+                                     "moves by the solved potentials' gradient at its own position: the "
+                                     "self-term costs style Gaussians squared; every project scene has fewer per "
+                                     "cluster); 0: every one",
+                               minimum=0)
     masses: str = option("style-area", "each Gaussian's mass in the transport: area (opacity times its two largest "
                                        "scales: both sides are distributions of surface, whatever the Gaussians' "
                                        "sizes), uniform (one per Gaussian: where a trained scene uses many small "
@@ -232,19 +234,6 @@ def normalize_pair(content: torch.Tensor, style: torch.Tensor | None = None) -> 
     return c, max(r, 1e-9)
 
 
-def cluster_blur(cfg: StylizeConfig, mapped: torch.Tensor, scene_radius: float, mean_scale: float,
-                 style: torch.Tensor | None = None) -> float:
-    """gamma of one cluster in the units of :func:`normalize_pair` (the mapped cluster's radius).
-
-    mapped: [N, 3] the content cluster in the style frame; scene_radius: the content scene's radius;
-    mean_scale: the mean of the cluster's registration scales s_i; style: [M, 3] its style Gaussians
-    (the radius of a one-point cluster, see :func:`normalize_pair`)."""
-    if cfg.blur_units == "cluster":
-        return cfg.sinkhorn.blur
-    _, r = normalize_pair(mapped.double(), None if style is None else style.double())
-    return cfg.sinkhorn.blur * scene_radius * mean_scale / r
-
-
 def colour_features(rgb: torch.Tensor, features: str) -> torch.Tensor:
     """[N, 3] -> [N, 0 | 1 | 3]."""
     if features == "xyz":
@@ -265,7 +254,7 @@ class ClusterResult:
 @dataclass
 class ClusterPair:
     """One term of eq. 9: content cluster x_* [N, 3] in the style frame, its style Gaussians y_* [M, 3],
-    its gamma in normalized units (:func:`cluster_blur`) and the two sides' masses x_w [N], y_w [M]
+    its gamma in normalized units (a fraction of the cluster's radius) and the two sides' masses x_w [N], y_w [M]
     (any positive scale, normalized per side; None: uniform)."""
 
     x_pos: torch.Tensor
@@ -565,6 +554,48 @@ class _Descent:
                     p.add_(p.grad, alpha=-g["lr"])
 
 
+class Leaders(NamedTuple):
+    """The packed style rows a capped transport sees (:func:`transport_leaders`): ``rows`` [C'] the drawn
+    rows, ``offsets`` [K+1] their CSR offsets, ``mass`` [C'] each one's mass (its Voronoi cell's)."""
+
+    rows: torch.Tensor
+    offsets: torch.Tensor
+    mass: torch.Tensor
+
+
+def transport_leaders(ys: list[torch.Tensor], masses: torch.Tensor | None, cap: int) -> Leaders | None:
+    """Each cluster's style Gaussians cut to at most ``cap`` in the transport (None where no cluster has
+    more). ys: the clusters' normalized positions [M_k, 3]; masses: packed [sum M_k], each cluster's
+    summing to 1 (None: uniform).
+
+    Beyond the cap a seeded uniform draw of ``cap`` rows is transported, each with the mass of the rows
+    nearest it at the start (:func:`cell_masses`): a quantization of the whole cluster's distribution
+    (eq. 9 on the same measure, fewer atoms). Every row then moves by the gradient of the solved
+    potentials at its own position (:func:`wast3d.sinkhorn.grad_y_at`), so the flow stays smooth at the
+    blur's scale (30 % of the cluster's radius) and no cell moves as a block (error against run time:
+    benchmarks/transport_caps.py)."""
+    sizes = [len(y) for y in ys]
+    if cap <= 0 or max(sizes, default=0) <= cap:
+        return None
+    g = torch.Generator().manual_seed(0)
+    rows, mass, start = [], [], 0
+    for y in ys:
+        m = len(y)
+        w = None if masses is None else masses[start:start + m]
+        if m <= cap:
+            rows.append(torch.arange(start, start + m))
+            mass.append(torch.full((m,), 1.0 / m, dtype=torch.float64) if w is None else w.detach().double().cpu())
+        else:
+            pick = torch.randperm(m, generator=g)[:cap].sort().values
+            rows.append(pick + start)
+            mass.append(cell_masses(y[pick].double(), y, w))
+        start += m
+    counts = torch.tensor([len(r) for r in rows])
+    log.info("stylize: each cluster's transport sees at most %d of its style Gaussians (%d of %d in all)", cap,
+             int(counts.sum()), start)
+    return Leaders(torch.cat(rows), torch.cat([counts.new_zeros(1), counts.cumsum(0)]), torch.cat(mass))
+
+
 def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: bool = False,
                      up: torch.Tensor | None = None) -> list[ClusterResult]:
     """Terms of eq. 9 optimized together: one packed (ragged) Sinkhorn solve per step over all of them
@@ -575,7 +606,7 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     cluster (what makes 400 clusters cheap on a GPU, and keeps both cores busy on small clusters)."""
     from tqdm import tqdm
 
-    from .sinkhorn import segment_ids, sinkhorn_batched
+    from .sinkhorn import grad_y_at, segment_ids, sinkhorn_batched
 
     t0 = time.perf_counter()
     dt = torch.float64 if cfg.dtype == "float64" else torch.float32
@@ -596,6 +627,10 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
     yid = segment_ids(y_off).to(dev)
     a, b = packed_masses([pr.x_w for pr in pairs], n, dev, dt), packed_masses([pr.y_w for pr in pairs], m, dev, dt)
     blur = torch.tensor([pr.blur for pr in pairs], dtype=torch.float64)
+    lead = transport_leaders(ys, b, cfg.style_points) if cfg.loss == "sinkhorn" else None
+    if lead is not None:  # the transport on the drawn rows; every row's gradient from its potentials
+        rows, y_off_t, b_t = lead.rows.to(dev), lead.offsets, lead.mass.to(dev, dt)
+        b_all = (1.0 / m.to(dev, dt))[yid] if b is None else b
     Y = torch.cat(ys).clone().requires_grad_(True)
     dC = torch.zeros_like(y0c).requires_grad_(True)
     groups = [{"params": [Y], "lr": cfg.lr}]
@@ -629,10 +664,12 @@ def stylize_clusters(pairs: list[ClusterPair], cfg: StylizeConfig, progress: boo
         opt.zero_grad(set_to_none=True)
         yf = torch.cat([Y, w * (y0c + dC)], 1)
         if araps is None:
-            res = sinkhorn_batched(xf, yf.detach(), x_off, y_off, cfg.sinkhorn, a=a, b=b, blur=blur,
+            yt, bt, ot = (yf.detach()[rows], b_t, y_off_t) if lead is not None else (yf.detach(), b, y_off)
+            res = sinkhorn_batched(xf, yt, x_off, ot, cfg.sinkhorn, a=a, b=bt, blur=blur,
                                    init=pot if cfg.warm_start else None, x_fixed=True)
             pot = res.potentials
-            gy = res.grad_y
+            gy = res.grad_y if lead is None else \
+                grad_y_at(yf.detach(), y_off, xf, yt, res, cfg.sinkhorn, a=a, b=b_t) * b_all[:, None]
             Y.grad = gy[:, :3].contiguous()
             if dC.shape[1]:
                 dC.grad = (w * gy[:, 3:]).contiguous()
@@ -812,6 +849,18 @@ def completed_selection(selection, part: torch.Tensor, cfg: "StylizeConfig", hei
     return out
 
 
+def cell_masses(drawn: torch.Tensor, points: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
+    """drawn [N', 3] of points [N, 3] (masses w [N], None: uniform) -> [N'] each drawn point's mass: the
+    masses of the points nearest it (its Voronoi cell), normalized to sum 1: the draw as a quantization
+    of the whole cloud rather than a sample of it."""
+    from .geometry import kdtree
+
+    near = torch.from_numpy(kdtree(drawn.double().cpu().numpy()).query(points.double().cpu().numpy())[1]).long()
+    w = torch.ones(len(points), dtype=torch.float64) if w is None else w.detach().double().cpu()
+    mass = torch.zeros(len(drawn), dtype=torch.float64).index_add_(0, near, w)
+    return (mass / mass.sum()).to(drawn.dtype)
+
+
 def transport_points(labels: torch.Tensor, cap: int) -> torch.Tensor:
     """[N] bool: the content points each cluster's transport sees, at most ``cap`` per cluster (a seeded
     uniform draw, :func:`~wast3d.geometry.cap_per_label`; every point where ``cap`` is 0 or no cluster is
@@ -837,7 +886,6 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     offsets, indices = selection.offsets, selection.indices
     K = len(offsets) - 1
     cm = content.means.double()
-    scene_radius = float((cm - cm.mean(0)).norm(dim=1).max()) if len(cm) > 1 else 1.0
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()
     c_mass, s_mass = transport_masses(content, style, cfg.masses)
@@ -880,10 +928,12 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         if float(selection.log_gain[i]) != 0.0:  # a thinned cluster: its Gaussians enlarged (selection.thin)
             sub = replace(sub, log_scales=sub.log_scales + float(selection.log_gain[i]))
         todo.append((i, sel, sub))
+        x_w = None if c_mass is None else c_mass[m]
+        if not bool(in_transport[labels == i].all()):  # a capped cluster: the drawn points carry the others' mass
+            x_w = cell_masses(mapped[m], mapped[labels == i], None if c_mass is None else c_mass[labels == i])
         pairs.append(ClusterPair(mapped[m], c_rgb[m], sub.means.float(), sub.rgb.float(),
-                                 cluster_blur(cfg, mapped[m], scene_radius, float(reg.s[i].mean()),
-                                              sub.means),
-                                 x_w=None if c_mass is None else c_mass[m], y_w=None if s_mass is None else s_mass[sel],
+                                 cfg.sinkhorn.blur,
+                                 x_w=x_w, y_w=None if s_mass is None else s_mass[sel],
                                  y_part=None if part is None else part[sel], y_reach=reach))
     if not pairs:
         raise ValueError("stylize: no non-empty cluster")
