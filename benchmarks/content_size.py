@@ -10,7 +10,8 @@ eps), each in one process, one size after another: surface sampling (stage 2), k
 registration and selection (4), Sinkhorn (5), scale readjustment (6) and a turntable of the result (7).
 Per stage: wall time, peak resident memory above the process's level before it (Linux: VmHWM reset
 through /proc/self/clear_refs) and the process's own peak, and the growth exponent of its time between
-successive sizes (1: linear). Writes ``results/benchmarks/content_size.{csv,png}``.
+successive sizes (1: linear). Writes ``results/benchmarks/content_size.{csv,png}`` and each size's turntable,
+key views and close-up under ``results/benchmarks/content_size/N/``.
 """
 
 from __future__ import annotations
@@ -98,12 +99,10 @@ def run_size(n: int, style, blocks: dict, content_name: str, render_size: int) -
     final, _ = step("rescale", lambda: rescale(res.scene, res.before_means, res.labels,
                                                make_config(RescaleConfig, blocks.get("rescale"), "rescale")),
                     lambda r: len(r[0]))
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as d:
-        step("render", lambda: render_turntable(final, content, Path(d), RenderConfig(frames=24, size=render_size,
-                                                                                       closeup_size=512)),
-             lambda i: i["frames"])
+    pictures = OUT / "content_size" / str(n)  # the turntable kept: look at the result, not only its times
+    step("render", lambda: render_turntable(final, content, pictures, RenderConfig(frames=24, size=render_size,
+                                                                                   closeup_size=512)),
+         lambda i: i["frames"])
     return rows
 
 
