@@ -967,6 +967,8 @@ def test_coherence_makes_interleaved_clusters_contiguous():
     patches = kmeans(pts.float(), rgb, replace(cfg, coherence=3))[0]
     assert same(mixed) < 0.5 < 0.8 < same(patches), (same(mixed), same(patches))
     assert own_share(mixed, pts.numpy()) == pytest.approx(same(mixed))
+    # beyond max_points the share is estimated on a draw: within a few standard errors of the whole
+    assert own_share(mixed, pts.numpy(), max_points=1000) == pytest.approx(same(mixed), abs=0.03)
     # coherence_below: the vote runs only where the clusters interleave
     kept, _, info = kmeans(pts.float(), rgb, replace(cfg, coherence=3, coherence_below=0.1))
     assert np.array_equal(kept, mixed) and info["coherence_relabelled"] == 0
