@@ -122,6 +122,9 @@ def test_two_styles_on_a_tiny_content_through_the_workflow(tmp_path):
         part = read_ply(r / f"stylize/mix-{k}__{st}/default/final.ply")
         own = region[kdtree(content.means.numpy()).query(part.means.numpy())[1]] == k
         assert own.mean() > 0.9, (st, own.mean())  # its Gaussians over its own region
+    # a region's elements come out as large as the style alone makes them on the whole content
+    s0 = {c: json.loads((r / f"register/{c}__peb/default/registration.json").read_text())["s0"] for c in ("blob", "mix-0")}
+    assert s0["mix-0"] == pytest.approx(s0["blob"], rel=1e-9), s0
     seams = json.loads((r / "eval/blob__mix/default_seams.json").read_text())
     assert seams["coverage_band"] >= min(seams["coverage_band_alone"]) - 0.05
     for v in seams["regions"].values():

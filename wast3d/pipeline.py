@@ -113,11 +113,14 @@ def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, p
     from .registration import RegistrationConfig, element_size_report, register
 
     cfg = make_config(RegistrationConfig, params, "register")
-    style_path, content, style = style, read_ply(content), read_ply(style)
+    style_path, content_path, content, style = style, Path(content), read_ply(content), read_ply(style)
     cl = _clusters(clusters, len(content))
     labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
+    beside = content_path.with_suffix(".json")  # a region's points: sized by the whole content's diameter
+    region = read_json(beside) if beside.exists() else {}
     reg = register(content.means, labels, style.means, cfg,
-                   normals=None if normals is None else torch.from_numpy(normals))
+                   normals=None if normals is None else torch.from_numpy(normals),
+                   diameter=region.get("content_diameter"))
     save_npz(out_npz, **reg.to_npz())
     size = element_size_report(reg, cfg.scale_range)
     (log.warning if abs(math.log(size["median"])) > math.log(1.2) else log.info)(  # a fifth off: say it louder
@@ -522,11 +525,16 @@ def _region_of(regions: Path, n: int, index: int) -> np.ndarray:
 
 
 def run_region_content(*, content: Path, regions: Path, out_ply: Path, params: dict) -> None:
-    """The content points of region ``params["index"]``: the content a region's style rebuilds."""
+    """The content points of region ``params["index"]``: the content a region's style rebuilds; the JSON
+    beside it gives the whole content's diameter, which the region's elements are sized by (stage 4)."""
+    from .geometry import robust_bounds
+
     pts = read_ply(content)
     k = int(params.get("index", -1))
     region = _region_of(regions, len(pts), k)
     write_ply(out_ply, pts.subset(torch.from_numpy(np.nonzero(region == k)[0])))
+    write_json(Path(out_ply).with_suffix(".json"), {"region": k, "of": str(content), "points": int((region == k).sum()),
+                                                      "content_diameter": 2 * robust_bounds(pts.means)[1]})
 
 
 def run_region_clusters(*, clusters: Path, regions: Path, out_npz: Path, params: dict) -> None:

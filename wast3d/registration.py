@@ -411,8 +411,11 @@ def relief(style: torch.Tensor, grid: int = 128, q: float = 0.02, up="z", level:
     return Relief(max(2.0 * r0 * cell / level_ratio, height_factor * iqr), height)
 
 
-def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConfig) -> tuple[float, dict]:
-    """s0 of the module docstring and how it was chosen. content: [N, 3], style: [M, 3]."""
+def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConfig,
+               diameter: float | None = None) -> tuple[float, dict]:
+    """s0 of the module docstring and how it was chosen. content: [N, 3], style: [M, 3]; ``diameter``: the
+    content diameter the element scale refers to (default: the content's own; a region of a content gives
+    the whole content's, so that its elements come out as large as the style alone makes them)."""
     from .geometry import robust_bounds
 
     if cfg.scale > 0:
@@ -425,7 +428,7 @@ def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConf
             why = f"element_scale not applicable ({e}); density rule used"
             log.warning("registration: %s", why)
         else:
-            Dc = 2 * robust_bounds(content)[1]
+            Dc = diameter if diameter else 2 * robust_bounds(content)[1]
             return L / (cfg.element_scale * Dc), {"rule": "element_scale", "relief_length": L, "content_diameter": Dc,
                                                   "element_scale": cfg.element_scale}
     h_s, h_c = mean_spacing(style, seed=cfg.seed), mean_spacing(content, seed=cfg.seed)
@@ -526,11 +529,12 @@ def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, 
 
 @torch.no_grad()
 def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
-             cfg: RegistrationConfig = RegistrationConfig(), normals: torch.Tensor | None = None) -> Registration:
+             cfg: RegistrationConfig = RegistrationConfig(), normals: torch.Tensor | None = None,
+             diameter: float | None = None) -> Registration:
     """content: [N,3] points, labels: [N] in 0..K-1, style: [M,3], normals: [N,3] the points' outward
     normals if known (stage 3 makes them) -> :class:`Registration`. With normals, a cluster's normal is
     their mean (already outward); without, its least-variance axis turned outward by
-    :func:`outward_normals`."""
+    :func:`outward_normals`. ``diameter``: see :func:`base_scale`."""
     content, style = content.double(), style.double()
     labels = labels.long()
     K = int(labels.max()) + 1 if len(labels) else 0
@@ -544,7 +548,7 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     mu = _segment_mean(content, labels, K)
     cent = content - mu[labels]
     sp_style = mean_spacing(style, seed=cfg.seed)
-    s0, how = base_scale(content, style, cfg)
+    s0, how = base_scale(content, style, cfg, diameter)
     log.info("registration: s0 = %.4g by %s", s0, ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                                                for k, v in how.items()))
     s_lo, s_hi = s0 / cfg.scale_range, s0 * cfg.scale_range

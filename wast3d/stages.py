@@ -215,6 +215,8 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
     Stage("region-content", "stage 3b: the content points of one region (params: index)", "run_region_content", (
         _CONTENT, In("regions", "each content point's region (NPZ)"),
         Out("ply", "the region's content points (PLY)"),
+        Out("json", "the region, its points and the whole content's diameter, which its elements are sized by "
+                    "(JSON)", beside="ply"),
     )),
     Stage("region-clusters", "stage 3b: the content's clusters cut by one region's border (params: index)",
           "run_region_clusters", (

@@ -54,6 +54,7 @@ rule region_content:
         regions=lambda w: region_file(w.scene),
     output:
         ply=results("scene"),
+        json=beside("scene", ".json"),
     wildcard_constraints:
         scene=constraint(list(REGION_CONTENTS)),
     params:
@@ -149,12 +150,17 @@ rule seams:
         "{params.exe} --threads {threads} {params.args} --params '{params.cfg}' 2> {log:q}"
 
 
+def set_styles(name):
+    """A region set's styles, each once, in the set's order (two regions may take one style)."""
+    return list(dict.fromkeys(r.style for r in REGION_SETS[name]["regions"]))
+
+
 rule regions_sheet:
     input:
         content=lambda w: results("render_pair", content=w.content, style=w.style, method="input"),
         result=lambda w: results("render_pair", content=w.content, style=w.style, method=w.experiment),
-        alone=lambda w: [results("render_pair", content=w.content, style=r.style, method=w.experiment)
-                         for r in REGION_SETS[w.style]["regions"]],
+        alone=lambda w: [results("render_pair", content=w.content, style=st, method=w.experiment)
+                         for st in set_styles(w.style)],
     output:
         report(f"{RESULTS}/figures/{{content}}__{{style}}_{{experiment}}_regions.png",
                caption="../report/comparison.rst", category="Figures"),
@@ -164,7 +170,7 @@ rule regions_sheet:
         exe=WAST3D,
         columns=lambda w, input: quoted(
             [f"content={input.content}", f"by regions={input.result}"]
-            + [f"{r.style} alone={p}" for r, p in zip(REGION_SETS[w.style]["regions"], input.alone)]),
+            + [f"{st} alone={p}" for st, p in zip(set_styles(w.style), input.alone)]),
     conda:
         "../envs/wast3d.yaml"
     log:
