@@ -109,18 +109,16 @@ def _labels(path: Path, n: int) -> torch.Tensor:
 
 
 def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, params: dict,
-                 out_picture: Path | None = None) -> None:
+                 region: Path | None = None, out_picture: Path | None = None) -> None:
     from .registration import RegistrationConfig, element_size_report, register
 
     cfg = make_config(RegistrationConfig, params, "register")
-    style_path, content_path, content, style = style, Path(content), read_ply(content), read_ply(style)
+    style_path, content, style = style, read_ply(content), read_ply(style)
     cl = _clusters(clusters, len(content))
     labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
-    beside = content_path.with_suffix(".json")  # a region's points: sized by the whole content's diameter
-    region = read_json(beside) if beside.exists() else {}
     reg = register(content.means, labels, style.means, cfg,
                    normals=None if normals is None else torch.from_numpy(normals),
-                   diameter=region.get("content_diameter"))
+                   diameter=_region_diameter(region) if region else None)
     save_npz(out_npz, **reg.to_npz())
     size = element_size_report(reg, cfg.scale_range)
     (log.warning if abs(math.log(size["median"])) > math.log(1.2) else log.info)(  # a fifth off: say it louder
@@ -144,6 +142,14 @@ def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, p
             near = ((style.means.double() - c).norm(dim=1) < r)
             panels.append((m.numpy(), style.means[near].numpy(), style.rgb[near].numpy()))
         registration_picture(panels, out_picture)
+
+
+def _region_diameter(path: Path) -> float:
+    """The whole content's diameter a region's JSON (region-content) gives; errors name the file."""
+    d = read_json(path).get("content_diameter")
+    if not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0:
+        raise ValueError(f"{path}: 'content_diameter' must be a positive number, got {d!r}")
+    return float(d)
 
 
 def load_registration(path: Path):

@@ -162,6 +162,8 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
     ), "wast3d.clustering:ClusterConfig", "partitions.*.cluster"),
     Stage("register", "stage 4a: per-cluster registration to the style scene (eq. 7)", "run_register", (
         _CONTENT, _CLUSTERS, _STYLE,
+        In("region", "a region's content: its JSON, with the whole content's diameter its elements are sized by",
+           required=False),
         Out("npz", "rotation, scale, translation and residual per cluster (NPZ)"),
         Out("json", "residuals before and after, base scale, style spacing (JSON)", beside="npz"),
         Out("picture", "six clusters over their style neighbourhoods (PNG)", required=False),

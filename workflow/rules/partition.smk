@@ -78,6 +78,7 @@ rule register:
         content=lambda w: content_points(w.content),
         clusters=results("clusters"),
         style=lambda w: style_points(w.style),
+        region=lambda w: beside("scene", ".json", scene=w.content) if w.content in REGION_CONTENTS else [],
     output:
         npz=results("registration"),
         json=beside("registration", ".json"),
