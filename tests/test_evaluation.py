@@ -696,6 +696,34 @@ def test_coverage_at_the_element_scale_closes_gaps_not_holes():
         coverage_at_scale(ref, ref, [1.0, 2.0])
 
 
+def test_close_mask_is_the_closing_by_a_disc():
+    """close_mask (distance transforms) equals the closing by the disc {dx^2 + dy^2 <= radius^2} written
+    as two convolutions, frame edge as background, on random masks, sizes and radii (integer radii too,
+    where a pixel lies exactly on the disc's rim)."""
+    import math
+
+    import torch.nn.functional as F
+
+    from wast3d.image_metrics import close_mask
+
+    def by_convolution(mask, radius):
+        r = int(math.floor(radius))
+        if r < 1:
+            return mask.clone()
+        yy, xx = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing="ij")
+        disc = ((xx * xx + yy * yy) <= radius * radius).double()[None, None]
+        dilated = F.conv2d(F.pad(mask.double()[None, None], (2 * r,) * 4), disc) > 0.5
+        return (F.conv2d(F.pad((~dilated).double(), (r,) * 4), disc) < 0.5)[0, 0, r:-r, r:-r]
+
+    g = torch.Generator().manual_seed(0)
+    for t in range(120):
+        h, w = (int(v) for v in torch.randint(1, 33, (2,), generator=g))
+        mask = torch.rand(h, w, generator=g) < float(torch.rand(1, generator=g))
+        radius = float(torch.rand(1, generator=g)) * 7
+        radius = float(int(radius)) if t % 3 == 0 else radius
+        assert torch.equal(close_mask(mask, radius), by_convolution(mask, radius)), (h, w, radius)
+
+
 def test_loss_picture_of_a_run_without_steps(tmp_path):
     """The positive control 'selected' runs stylize with iterations: 0 (no loss curves at all)."""
     from wast3d.figures import loss_curves_picture

@@ -74,6 +74,23 @@ def test_native_matches_torch():
         assert torch.allclose(g, outs["native"][1][k], atol=1e-3 * (1 + g.abs().max())), k
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_several_channels_in_one_pass_equal_separate_renders(backend):
+    """colors [N, 9] rendered at once equal three 3-channel renders (the channels composite alone);
+    a uniform background spreads over the channels, a mixed 3-value one is refused."""
+    scene = random_scene(800, seed=3)
+    cam = orbit_cameras(2, 3.5, 60, 40)[0]
+    cols = torch.rand(len(scene), 9, dtype=scene.dtype, generator=torch.Generator().manual_seed(0))
+    both = rasterize(scene, cam, background=(0.5, 0.5, 0.5), backend=backend, colors=cols)
+    assert both.rgb.shape == (40, 60, 9)
+    for i in range(0, 9, 3):
+        one = rasterize(scene, cam, background=(0.5, 0.5, 0.5), backend=backend, colors=cols[:, i:i + 3].contiguous())
+        assert torch.allclose(both.rgb[..., i:i + 3], one.rgb, atol=1e-6), i
+        assert torch.equal(both.alpha, one.alpha) and torch.allclose(both.depth, one.depth, atol=1e-6)
+    with pytest.raises(ValueError, match="background"):
+        rasterize(scene, cam, background=(1.0, 0.0, 0.0), backend=backend, colors=cols)
+
+
 @pytest.mark.parametrize("tile", [5, 8, 13, 16, 32])
 def test_native_vector_lanes_match_torch_at_every_tile_size(tile):
     """The native compositor runs 8 pixels a vector: tiles whose pixel count is no multiple of 8 (5, 13),

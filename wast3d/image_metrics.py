@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -170,17 +171,31 @@ def coverage(result_alpha: torch.Tensor, reference_alpha: torch.Tensor, threshol
 
 def close_mask(mask: torch.Tensor, radius: float) -> torch.Tensor:
     """Morphological closing (dilation, then erosion) of a [H, W] bool mask by a disc of ``radius``
-    pixels: every gap narrower than the disc's diameter is filled, nothing outside the mask's convex
-    parts is added. Pixels beyond the frame count as background."""
+    pixels (the pixel offsets with dx^2 + dy^2 <= radius^2): every gap narrower than the disc's diameter
+    is filled, nothing outside the mask's convex parts is added. Pixels beyond the frame count as
+    background; the dilation extends ``r`` = floor(radius) pixels past the frame before the erosion.
+    Both steps by exact squared Euclidean distance transforms, O(H W) whatever the radius."""
     r = int(math.floor(radius))
-    if r < 1:
+    if r < 1 or not bool(mask.any()):
         return mask.clone()
-    yy, xx = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing="ij")
-    disc = ((xx * xx + yy * yy) <= radius * radius).double()[None, None]
-    m = F.pad(mask.double()[None, None], (2 * r,) * 4)
-    dilated = F.conv2d(m, disc) > 0.5  # [H + 2r, W + 2r]
-    holes = F.conv2d(F.pad((~dilated).double(), (r,) * 4), disc)
-    return (holes < 0.5)[0, 0, r:-r, r:-r]
+    H, W = mask.shape
+    grown = np.zeros((H + 2 * r, W + 2 * r), dtype=bool)
+    grown[r:r + H, r:r + W] = mask.cpu().numpy()
+    dilated = _squared_distance_to(grown) <= radius * radius
+    if dilated.all():
+        return torch.ones_like(mask)
+    kept = _squared_distance_to(~dilated) > radius * radius
+    return torch.from_numpy(kept[r:r + H, r:r + W].copy())
+
+
+def _squared_distance_to(target: np.ndarray) -> np.ndarray:
+    """Exact squared Euclidean distance (integer pixels) of each pixel to the nearest True of ``target``
+    [H, W] (at least one True)."""
+    from scipy.ndimage import distance_transform_edt
+
+    idx = distance_transform_edt(~target, return_distances=False, return_indices=True)
+    yy, xx = np.indices(target.shape)
+    return (idx[0] - yy) ** 2 + (idx[1] - xx) ** 2
 
 
 def projected_radii(cameras: list[dict], centre, length: float) -> list[float]:

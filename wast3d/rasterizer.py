@@ -254,7 +254,7 @@ def composite_native(means2d, conics, colors, opac, gid, tile_off, width, height
 class Rendering:
     """One view rendered by :func:`rasterize`; the same fields and meanings on every backend.
 
-    - ``rgb`` [H, W, 3]: colour composited on the background;
+    - ``rgb`` [H, W, 3]: colour composited on the background ([H, W, C] for C-channel ``colors``);
     - ``alpha`` [H, W]: accumulated opacity;
     - ``depth`` [H, W]: expected camera-space z of the visible Gaussians (``sum w_i z_i / alpha``, 0
       where alpha = 0);
@@ -296,12 +296,18 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
               full_means2d: bool = False) -> Rendering:
     """Render ``scene`` from ``cam`` (see :class:`Rendering` for what comes back).
 
-    ``colors`` [N, 3] overrides the SH colours (e.g. to render labels). ``sh_degree`` defaults to the
+    ``colors`` [N, C] overrides the SH colours (labels, codes: C channels in one pass, at most 15 on the
+    CPU; ``rgb`` is then [H, W, C] and ``background`` one value or C). ``sh_degree`` defaults to the
     scene's degree. ``full_means2d=True`` also returns gsplat's densification layout (``densify``).
     """
     backend = backend or default_backend(scene.device)
     deg = scene.sh_degree if sh_degree is None else min(sh_degree, scene.sh_degree)
-    bg = torch.as_tensor(background, dtype=scene.dtype, device=scene.device)
+    bg = torch.as_tensor(background, dtype=scene.dtype, device=scene.device).reshape(-1)
+    channels = 3 if colors is None else colors.shape[1]
+    if len(bg) != channels:
+        if not bool((bg == bg[0]).all()):
+            raise ValueError(f"rasterize: a background of {len(bg)} values for {channels} channels")
+        bg = bg[:1].expand(channels)
     if backend == "gsplat":
         return _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d)
     p = project(scene.means, scene.quats, scene.scales, scene.opacities, cam)
@@ -329,8 +335,8 @@ def rasterize(scene: GaussianScene, cam: Camera, background=(0.0, 0.0, 0.0), sh_
     fn = {"torch": composite_torch, "native": composite_native}[backend]
     out, T = fn(means2d, p.conics, feats, p.opacities, gid, tile_off, cam.width, cam.height, radii=p.radii)
     alpha = 1 - T
-    image = out[..., :3] + T[..., None] * bg
-    depth = torch.where(alpha > 1e-6, out[..., 3] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+    image = out[..., :channels] + T[..., None] * bg
+    depth = torch.where(alpha > 1e-6, out[..., channels] / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
     return Rendering(rgb=image, alpha=alpha, depth=depth, visible_ids=p.ids, means2d=means2d,
                      radii=p.radii.amax(-1), densify=densify)
 
@@ -357,5 +363,6 @@ def _rasterize_gsplat(scene, cam, bg, deg, colors, full_means2d):  # pragma: no 
     if full_means2d:
         densify = {"means2d": meta["means2d"], "radii": meta["radii"], "width": cam.width, "height": cam.height,
                    "n_cameras": 1}
-    return Rendering(rgb=rc[0, ..., :3], alpha=alpha, depth=rc[0, ..., 3], visible_ids=ids,
+    c = len(bg)
+    return Rendering(rgb=rc[0, ..., :c], alpha=alpha, depth=rc[0, ..., c], visible_ids=ids,
                      means2d=meta["means2d"][0][ids], radii=radii[ids], densify=densify)

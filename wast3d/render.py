@@ -226,18 +226,17 @@ def read_cameras(folder: str | Path, n: int | None = None) -> list[Camera]:
 def element_pieces(scene: GaussianScene, copies: torch.Tensor, cams: list[Camera], tol: float,
                    min_alpha: float = 0.5) -> list[np.ndarray]:
     """The visible element pieces of a labelled scene (:func:`wast3d.elements.piece_areas`, per camera):
-    ``copies`` [N] each Gaussian's element copy (-1: the ground); two renders of the copies' codes and
-    one of the label channel per view."""
-    from .elements import PIECE_DIM, copy_codes, element_pixels, label_colours, piece_areas
+    ``copies`` [N] each Gaussian's element copy (-1: the ground); the label colours and the copies'
+    codes rendered together, one pass per view."""
+    from .elements import copy_codes, element_pixels, label_colours, piece_areas
 
     cols, codes = copy_codes(copies, dtype=scene.dtype)
     lab = label_colours(copies + 1, scene.dtype)
     out = []
+    both = torch.cat([lab, cols], 1)  # [N, 3 + elements.PIECE_DIM]
     for cam in cams:
-        m = rasterize(scene, cam, colors=lab)
-        code = torch.cat([rasterize(scene, cam, colors=cols[:, i:i + 3].contiguous()).rgb
-                          for i in range(0, PIECE_DIM, 3)], -1)
-        out.append(piece_areas(code, element_pixels(m.rgb, m.alpha), m.alpha, codes, tol, min_alpha))
+        m = rasterize(scene, cam, colors=both)
+        out.append(piece_areas(m.rgb[..., 3:], element_pixels(m.rgb[..., :3], m.alpha), m.alpha, codes, tol, min_alpha))
     return out
 
 
