@@ -231,13 +231,31 @@ def _subsample(n: int, m: int, g: torch.Generator) -> torch.Tensor:
     return torch.randperm(n, generator=g)[:m] if n > m else torch.arange(n)
 
 
+def colour_sinkhorn(a: torch.Tensor, b: torch.Tensor, cfg: MetricsConfig, dtype=torch.float32) -> float:
+    """``colour_sinkhorn`` of the module docstring: S_eps (blur ``cfg.blur``) between ``cfg.colour_points``
+    seeded random rows of the colours a [N, 3] and b [M, 3]. Solved in float32 by default: within 3e-6
+    of float64 on the demo's methods, 7x faster (``benchmarks/float32_solves.py``)."""
+    from .sinkhorn import sinkhorn
+
+    rng = lambda: torch.Generator().manual_seed(cfg.seed)  # noqa: E731
+    ia, ib = _subsample(len(a), cfg.colour_points, rng()), _subsample(len(b), cfg.colour_points, rng())
+    return float(sinkhorn(a[ia].to(dtype), b[ib].to(dtype), _solver(cfg), grad_y=False).value)
+
+
+def _solver(cfg: MetricsConfig):
+    """The Sinkhorn settings of the metrics' divergences (patch and colour)."""
+    from .sinkhorn import SinkhornConfig
+
+    return SinkhornConfig(blur=cfg.blur, scaling=0.7, extra_iters=20)
+
+
 def style_metrics(result: GaussianScene, style: GaussianScene, cfg: MetricsConfig) -> dict:
     """The style-fidelity metrics of the module docstring."""
-    from .sinkhorn import SinkhornConfig, sinkhorn
+    from .sinkhorn import sinkhorn
 
     if len(result) < 2 or len(style) < 2:
         raise ValueError(f"metrics: need at least 2 Gaussians on each side (result {len(result)}, style {len(style)})")
-    scfg = SinkhornConfig(blur=cfg.blur, scaling=0.7, extra_iters=20)
+    scfg = _solver(cfg)
     # each side draws from a fresh generator with the same seed: identical clouds -> identical samples
     rng = lambda: torch.Generator().manual_seed(cfg.seed)  # noqa: E731
     patch_chamfer = patch_sinkhorn = None
@@ -248,10 +266,7 @@ def style_metrics(result: GaussianScene, style: GaussianScene, cfg: MetricsConfi
         patch_chamfer = float(best.mean())
         patch_sinkhorn = float(np.mean([float(sinkhorn(rot[i], pb[arg[i]], scfg, grad_y=False).value)
                                         for i in range(len(pa))]))
-    ia = _subsample(len(result), cfg.colour_points, rng())
-    ib = _subsample(len(style), cfg.colour_points, rng())
-    # float32: the same value as float64 to 4 digits (docs/measurements.md#the-demo), 7x faster
-    colour = float(sinkhorn(result.rgb[ia].float(), style.rgb[ib].float(), scfg, grad_y=False).value)
+    colour = colour_sinkhorn(result.rgb, style.rgb, cfg)
     tr, ts = tilt_degrees(result, cfg.normal_k), tilt_degrees(style, cfg.normal_k)
     ar, as_ = anisotropy(result.scales.double()).log10(), anisotropy(style.scales.double()).log10()
     return {
