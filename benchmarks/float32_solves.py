@@ -15,20 +15,20 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, ROOT, write_rows  # noqa: E402
+from common import OUT, ROOT, Peak, write_rows  # noqa: E402
 
 
 def timed(fn):
-    t = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t
+    """fn() and its seconds (:class:`common.Peak`)."""
+    with Peak() as p:
+        out = fn()
+    return out, p.seconds
 
 
 def main() -> None:
