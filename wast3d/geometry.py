@@ -221,3 +221,19 @@ def cap_per_label(labels: torch.Tensor, cap: int, g: torch.Generator) -> torch.T
     first = torch.searchsorted(lab_sorted, torch.arange(int(labels.max()) + 1))
     rank = torch.arange(len(labels)) - first[lab_sorted]
     return order[rank < cap]
+
+
+def kmeans_from_groups(feats: np.ndarray, group: np.ndarray, max_iter: int) -> np.ndarray:
+    """K-means of ``feats`` [M, D] started from the centroids of ``group`` [M] (ids 0..P-1, each used):
+    one cluster per group, its borders then moved by the features -> [M] cluster ids 0..K-1 (K <= P).
+    A single group, or as many groups as points, is returned as it is."""
+    from sklearn.cluster import KMeans
+
+    P = int(group.max()) + 1
+    if P == 1 or P >= len(feats):
+        return group.astype(np.int64)
+    init = np.zeros((P, feats.shape[1]))
+    np.add.at(init, group, feats)
+    init /= np.bincount(group, minlength=P)[:, None]
+    km = KMeans(P, init=init, n_init=1, max_iter=max_iter).fit(feats)
+    return np.unique(km.labels_, return_inverse=True)[1].reshape(-1).astype(np.int64)

@@ -55,6 +55,17 @@ def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict,
     out = scene.subset(idx)
     if not report.get("skipped"):  # enabled: false is the style as it is: no refit, recolouring or dilation
         out = _finish_style(out, scene, cfg, report)
+    if report.get("form") == "volume":
+        from .volume import element_sheet, piece_size, volume_pieces
+
+        report["elements_from"] = "labels" if out.element is not None else "pieces"
+        if out.element is None:
+            size = piece_size(out.means.detach().numpy())
+            log.info("style form volume: no element labels: its elements are pieces about %.4g across (k-means on "
+                     "position and colour)", size)
+            out.element = torch.from_numpy(volume_pieces(out.means.detach().numpy(), out.rgb.detach().numpy()))
+            report["piece_size"] = size
+        out, report["sheet"] = element_sheet(out, cfg.seed)
     if out.element is not None:
         report["element_share_of_gaussians"] = float((out.element > 0).double().mean())
     write_ply(out_ply, out)
@@ -192,7 +203,8 @@ def run_select(*, content: Path, clusters: Path, style: Path, registration: Path
 
 
 def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Path, selection: Path,
-                out_ply: Path, out_npz: Path, out_csv: Path, params: dict, progress: bool = True) -> None:
+                out_ply: Path, out_npz: Path, out_csv: Path, params: dict, progress: bool = True,
+                style_form: Path | None = None) -> None:
     from .selection import Selection
     from .stylize import StylizeConfig, stylize
 
@@ -210,7 +222,8 @@ def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Pat
         raise ValueError(f"{sel_npz}: 'log_gain' must hold {K} finite values (one per cluster)")
     selection = Selection(torch.from_numpy(sel["offsets"]), torch.from_numpy(sel["indices"]),
                           torch.from_numpy(np.asarray(gain, dtype=np.float64)))
-    res = stylize(content, labels, style, reg, selection, cfg, progress)
+    sheet = style_form is not None and read_json(style_form).get("form") == "volume"
+    res = stylize(content, labels, style, reg, selection, cfg, progress, sheet=sheet)
     out, curves, secs = res.scene, res.curves, res.seconds
     write_ply(out_ply, out)
     save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy())

@@ -39,16 +39,25 @@ def save_preview(scene: GaussianScene, path: str | Path, n_views: int = 4, size:
 
 
 EXPORT_ELEVATIONS = (15.0, 35.0, 55.0)
+VOLUME_ELEVATIONS = (-50.0, -20.0, 10.0, 40.0, 70.0)  # a volume is seen from every side
 
 
 @torch.no_grad()
 def export_blender(scene: GaussianScene, root: str | Path, n_views: int = 48, size: int = 200,
-                   holdout_views: int = 0, elevations: tuple[float, ...] = EXPORT_ELEVATIONS) -> None:
+                   holdout_views: int = 0, elevations: tuple[float, ...] | None = None) -> None:
     """Render ``scene`` from orbit cameras into a Blender-format posed image set (train split): ``n_views``
-    cameras cycling through ``elevations`` (degrees above the scene's horizon).
+    cameras cycling through ``elevations`` (degrees above the scene's horizon); None: from above
+    (EXPORT_ELEVATIONS) for a patch, from every side (VOLUME_ELEVATIONS) for a volume
+    (:func:`wast3d.volume.style_form` of its Gaussians).
 
     The renders are on a transparent background (RGBA with straight alpha), as NeRF-Synthetic.
     """
+    if elevations is None:
+        from .volume import style_form
+
+        form = style_form(scene.means.detach().numpy())
+        elevations = VOLUME_ELEVATIONS if form.form == "volume" else EXPORT_ELEVATIONS
+        log.info("export views: a %s (%s): elevations %s", form.form, form.reason, list(elevations))
     cams = fit_orbit(scene, n_views, size, elevations_deg=tuple(elevations), phase_deg=7.0)
     outs = render_views(scene, cams, background=(0.0, 0.0, 0.0))
     write_blender(root, cams, [o.rgb for o in outs], [o.alpha for o in outs])

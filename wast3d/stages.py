@@ -176,6 +176,8 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
     Stage("stylize", "stage 5: minimize the Sinkhorn divergence per cluster (eq. 9)", "run_stylize", (
         _CONTENT, _CLUSTERS, _STYLE, _REGISTRATION,
         In("selection", "style indices per cluster (NPZ, stage 4b)"),
+        In("style_form", "the style stage's report (JSON, style-clean): a volume's element sheet flows element by "
+                         "element", required=False),
         Out("ply", "the stylized scene before scale readjustment (PLY)"),
         Out("npz", "each Gaussian's cluster and its position before the flow (NPZ)"),
         Out("csv", "loss per cluster and step (CSV)"),

@@ -350,8 +350,7 @@ def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour:
     to one translation per part. At about an element's size (one relief length,
     :func:`~wast3d.registration.relief_length`) the elements move whole and still independently of each
     other, unlike a diffusion of the steps (``smoothing.passes``), whose reach spans several elements."""
-    from sklearn.cluster import KMeans
-
+    from .geometry import kmeans_from_groups
     from .registration import patch_frame
 
     if not size > 0:
@@ -365,16 +364,8 @@ def style_parts(style: torch.Tensor, rgb: torch.Tensor, up, size: float, colour:
         if len(start) != len(x):
             raise ValueError(f"style parts: start has {len(start)} ids for {len(x)} Gaussians")
         _, cell = np.unique(start.detach().cpu().numpy(), return_inverse=True)
-    cell = cell.reshape(-1)
-    P = int(cell.max()) + 1
-    if P == 1 or P >= len(x):
-        return torch.from_numpy(cell)
     feats = np.concatenate([x / size, colour * rgb.detach().double().cpu().numpy()], 1)
-    init = np.zeros((P, feats.shape[1]))
-    np.add.at(init, cell, feats)
-    init /= np.bincount(cell, minlength=P)[:, None]
-    km = KMeans(P, init=init, n_init=1, max_iter=max_iter).fit(feats)
-    return torch.from_numpy(np.unique(km.labels_, return_inverse=True)[1].reshape(-1).astype(np.int64))
+    return torch.from_numpy(kmeans_from_groups(feats, cell.reshape(-1), max_iter))
 
 
 def dome_share(basins: torch.Tensor, part: torch.Tensor, min_size: int = 8) -> float:
@@ -405,15 +396,23 @@ def probe_parts(style: GaussianScene, up, length: float, cfg: StylizeConfig) -> 
     return style_parts(style.means, style.rgb, up, cfg.parts.dome_probe * length, cfg.parts.colour)
 
 
-def flow_parts(style: GaussianScene, up, cfg: StylizeConfig) -> torch.Tensor | None:
+def flow_parts(style: GaussianScene, up, cfg: StylizeConfig, sheet: bool = False) -> torch.Tensor | None:
     """The style's parts for the flow ([M] ids, :func:`style_parts`), or None where every Gaussian moves
     freely: ``parts.size`` 0, a style without relief, or a steep one (relief aspect above ``parts.max_aspect``:
     blades or strands longer than a part, which turning parts as one would tear: docs/measurements.md).
-    Says which, and why, in the log."""
+    ``sheet``: the style is a volume's element sheet (:mod:`wast3d.volume`), whose elements were laid out
+    one by one: each is a part, whatever its relief. Says which, and why, in the log."""
     from .registration import relief, relief_basins
 
     if cfg.parts.size <= 0:
         return None
+    if sheet:
+        if style.element is None:
+            raise ValueError("stylize: the style is an element sheet without element labels")
+        part = torch.unique(style.element.long(), return_inverse=True)[1]
+        log.info("stylize: the style is a volume's element sheet: its %d elements are the parts, each moving as "
+                 "one (%s)", int(part.max()) + 1, cfg.parts.motion)
+        return part
     try:
         rel = relief(style.means, up=up)
     except ValueError as e:
@@ -880,16 +879,17 @@ def transport_points(labels: torch.Tensor, cap: int) -> torch.Tensor:
 
 
 def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, reg, selection,
-            cfg: StylizeConfig, progress: bool = True) -> Stylized:
+            cfg: StylizeConfig, progress: bool = True, sheet: bool = False) -> Stylized:
     """Run eq. 9 over all clusters (:class:`Stylized`); ``selection``: a :class:`~wast3d.selection.Selection`
-    (each cluster's style Gaussians and their scale gain)."""
+    (each cluster's style Gaussians and their scale gain); ``sheet``: the style is a volume's element sheet
+    (:func:`flow_parts`)."""
     offsets, indices = selection.offsets, selection.indices
     K = len(offsets) - 1
     cm = content.means.double()
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()
     c_mass, s_mass = transport_masses(content, style, cfg.masses)
-    part = flow_parts(style, reg.style_up.tolist(), cfg)
+    part = flow_parts(style, reg.style_up.tolist(), cfg, sheet)
     if part is not None and cfg.smoothing.passes and not cfg.smoothing.with_parts:
         log.info("stylize: displacement smoothing left out: the parts keep the elements whole (smoothing.with_parts false)")
         cfg = replace(cfg, smoothing=replace(cfg.smoothing, passes=0))

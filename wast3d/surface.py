@@ -80,6 +80,7 @@ import torch
 from .gaussians import GaussianScene, footprint, rgb_to_sh_dc
 from .geometry import knn
 from .options import checked, option
+from .volume import FORMS, style_form
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +119,10 @@ class SurfaceConfig:
 @checked("style_clean")
 class StyleCleanConfig:
     enabled: bool = option(True, "false: use the style scene as it is")
+    form: str = option("auto", "patch (a ground with elements on it, seen from above), volume (an object seen from every "
+                               "side: its elements laid side by side on a sheet, outer side up; needs element labels) "
+                               "or auto: volume where the style is thicker than 0.35 of its width (wast3d.volume)",
+                       enum=list(FORMS))
     min_opacity: float = option(0.05, "drop Gaussians below this opacity (translucent haze)", minimum=0, maximum=1)
     core_quantile: float = option(0.01, "patch box: these quantiles (and 1 minus them) of the opaque Gaussians' "
                                         "positions, per axis", minimum=0, exclusiveMaximum=0.5)
@@ -620,12 +625,18 @@ def clean_style(scene: GaussianScene, cfg: StyleCleanConfig) -> tuple[torch.Tens
         big = scene.scales.detach().max(1).values
         _drop(keep, big > cfg.max_scale * big[keep].median(), report, "removed_oversized")
     _outliers(scene, keep, cfg.outlier_k, cfg.outlier_quantile, report)
-    if cfg.below_ground > 0 and bool(keep.any()):
+    form = style_form(m[keep].numpy(), cfg.form)
+    report["form"], report["thickness"], report["form_reason"] = form.form, form.thickness, form.reason
+    log.info("style form: %s (%s)", form.form, form.reason)
+    if form.form == "volume":
+        log.info("style cleaning: the ground and visibility tests left out: a volume has no ground and is seen "
+                 "from every side")
+    elif cfg.below_ground > 0 and bool(keep.any()):
         idx = keep.nonzero().squeeze(1)
         ground, relief = ground_and_relief(m[idx], scene.opacities.detach()[idx])
         report["ground_height"], report["relief_height"] = ground, relief
         _drop(keep, m[:, 2] < ground - cfg.below_ground * relief, report, "removed_below_ground")
-    if cfg.visibility:
+    if cfg.visibility and form.form == "patch":
         idx = keep.nonzero().squeeze(1)
         w = torch.zeros(n, dtype=torch.float64)
         if len(idx):

@@ -55,6 +55,7 @@ PAIRS = [tuple(p) for p in config.get("pairs", [])]
 # own, scene NAME-k (its points: the content points it claims; its clusters: the content's cut by it),
 # paired with its style; the pairs' results are merged into results/stylize/CONTENT__NAME/.
 _REGIONS = _load("regions.py")
+_VOLUME = _load("volume.py")  # the procedural styles that are volumes
 REGION_SETS, REGION_CONTENTS = {}, {}
 for _set, _r in (config.get("regions") or {}).items():
     _where = _CHECK.source(("regions", _set), _CONFIG_FILES)
@@ -182,7 +183,9 @@ def needs_style_clean(scene):
     scene in a style's place, listed in `pairs` or not: a target of a pair outside `pairs` (a
     benchmark's, or one merged config's pair under another's `pairs`) gets the same cleaned style."""
     s = SCENES[scene]
-    return bool(s.get("labels_from")) or (s["source"] != "procedural" and s.get("style_clean", {}).get("enabled", True))
+    if s["source"] == "procedural":  # a generated patch is clean; a generated volume is laid out on a sheet there
+        return bool(s.get("labels_from")) or s["name"] in _VOLUME.PROCEDURAL_VOLUMES
+    return bool(s.get("labels_from")) or s.get("style_clean", {}).get("enabled", True)
 
 
 def style_points(scene):

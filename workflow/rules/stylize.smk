@@ -8,6 +8,7 @@ rule sinkhorn:
         style=lambda w: style_points(w.style),
         registration=lambda w: results("registration", content=w.content, style=w.style, partition=partition_of(w)),
         selection=lambda w: results("selection", content=w.content, style=w.style, partition=partition_of(w)),
+        style_form=lambda w: [beside("style", ".json", scene=w.style)] if needs_style_clean(w.style) else [],
     output:
         ply=results("stylized"),
         npz=results("stylize_npz"),
