@@ -115,16 +115,3 @@ def write_tiny_clip(folder: Path, seed: int = 0) -> tuple[Path, Path]:
         torch.manual_seed(seed)
         torch.save(open_clip.create_model("wast3d-tiny-clip", pretrained=None).state_dict(), ckpt)
     return cfg, ckpt
-
-
-def pytest_collection_modifyitems(config, items):
-    """The suite runs on both cores (pytest-xdist, ``--dist loadgroup`` in pyproject.toml): the tests of a
-    module that share a module-scoped fixture (the tiny workflow's run, the local SLURM cluster, a
-    pretrained scene) go to one worker together, so that the fixture is built once; every other test goes
-    wherever a worker is free."""
-    for item in items:
-        defs = getattr(item, "_fixtureinfo", None)
-        shared = [name for name, fd in (defs.name2fixturedefs.items() if defs else ())
-                  if fd and fd[-1].scope == "module"]
-        if shared:
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
