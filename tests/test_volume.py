@@ -123,6 +123,18 @@ def test_label_free_pieces_are_about_an_element_across():
     assert 0.5 < piece_size(s.means.numpy()) / 0.2 < 2.0  # the flowers are about 0.2 across
 
 
+def test_a_volume_whose_labels_hold_no_element_is_an_error_naming_the_file(tmp_path):
+    from wast3d.pipeline import run_style_clean
+    from wast3d.ply import write_ply
+
+    s = make_scene("style", "bouquet", 3000, seed=0)
+    s.element = torch.zeros_like(s.element)  # every Gaussian "stem": nothing to lay out
+    write_ply(tmp_path / "stems.ply", s)
+    with pytest.raises(ValueError, match=r"stems\.ply: read as a volume .*no element of 3 Gaussians"):
+        run_style_clean(scene=tmp_path / "stems.ply", out_ply=tmp_path / "o.ply", out_json=tmp_path / "o.json", params={})
+    assert not (tmp_path / "o.ply").exists() and not (tmp_path / "o.json").exists()
+
+
 def test_a_sheet_flows_element_by_element():
     from wast3d.stylize import StylizeConfig, flow_parts
 

@@ -65,7 +65,10 @@ def run_style_clean(*, scene: Path, out_ply: Path, out_json: Path, params: dict,
                      "position and colour)", size)
             out.element = torch.from_numpy(volume_pieces(out.means.detach().numpy(), out.rgb.detach().numpy()))
             report["piece_size"] = size
-        out, report["sheet"] = element_sheet(out, cfg.seed)
+        try:
+            out, report["sheet"] = element_sheet(out, cfg.seed)
+        except ValueError as e:
+            raise ValueError(f"{source}: read as a volume ({report['form_reason']}): {e}") from None
     if out.element is not None:
         report["element_share_of_gaussians"] = float((out.element > 0).double().mean())
     write_ply(out_ply, out)
