@@ -24,6 +24,16 @@ def test_the_form_is_read_from_the_scene(name, form):
     assert style_form(s.means.numpy(), "patch" if form == "volume" else "volume").reason.startswith("asked")
 
 
+def test_the_workflow_knows_which_procedural_styles_are_volumes():
+    """common.smk sends the procedural volumes through the style stage by this list (it reads no scene):
+    it must be exactly the generator's styles that the form test reads as volumes."""
+    from wast3d.procedural import STYLES
+    from wast3d.volume import PROCEDURAL_VOLUMES
+
+    read = {n for n in STYLES if style_form(make_scene("style", n, 3000, seed=0).means.numpy()).form == "volume"}
+    assert read == set(PROCEDURAL_VOLUMES)
+
+
 def test_thickness_is_the_least_extent_over_the_middle_one():
     g = np.random.default_rng(0)
     slab = g.uniform(-1, 1, (4000, 3)) * [3.0, 2.0, 0.2]  # a long strip: e_3 / e_2 = 0.1, whatever e_1
