@@ -168,3 +168,13 @@ def test_a_volume_is_exported_from_every_side(tmp_path):
         centre = np.asarray(scene_bounds(scene)[0])
         elev = np.degrees(np.arcsin((pos[:, 2] - centre[2]) / np.linalg.norm(pos - centre, axis=1)))
         assert elev.min() == pytest.approx(lowest, abs=3.0), (name, elev)
+
+
+def test_the_share_ratio_is_not_read_on_a_sheet():
+    """Every Gaussian of a sheet is an element, so the element share of any result of it is 1: the
+    evaluation says so instead of scoring it; a patch (its ground label 0) keeps the ratio."""
+    from wast3d.elements import share_blind
+
+    sheet, _ = element_sheet(make_scene("style", "bouquet", 3000, seed=0))
+    assert "volume's sheet" in share_blind(sheet.element)
+    assert share_blind(make_scene("style", "pebbles", 3000, seed=0).element) is None

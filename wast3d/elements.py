@@ -101,6 +101,15 @@ def element_share(element_frames: torch.Tensor, alpha: torch.Tensor, min_alpha: 
     return float(((element_frames > 0.5) & fg).sum() / fg.sum())
 
 
+def share_blind(element: torch.Tensor) -> str | None:
+    """Why ``element_share_ratio`` cannot tell results of this style apart ([N] labels), or None. Where
+    every Gaussian of the style is an element (a volume's sheet: what held the elements was left off),
+    every result made of it draws element pixels only and scores 1, flowers whole or cut."""
+    if len(element) and bool((element > 0).all()):
+        return "every Gaussian of the style is an element (a volume's sheet): any result of it scores 1"
+    return None
+
+
 def copy_codes(copies: torch.Tensor, seed: int = 0, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     """[N] copy id of each Gaussian (-1: the ground) -> (per-Gaussian colours [N, PIECE_DIM], the ground
     0; the distinct copies' codes [C, PIECE_DIM], uniform in [0, 1], row c for the c-th smallest id)."""

@@ -386,7 +386,7 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     of the result's turntable (``frames``, cameras in ``result_render``) against the style's texture
     reference (``style_frames``, read from ``texture_reference``), and ``element_intact`` against the
     collage (the positions before optimization in ``stylize_npz``)."""
-    from .elements import copy_ids, element_intact, element_share, element_whole
+    from .elements import copy_ids, element_intact, element_share, element_whole, share_blind
     from .render import element_pieces, read_cameras, read_element_frames
 
     out = {"element_share": None, "element_share_style": None, "element_share_ratio": None, "element_intact": None,
@@ -401,8 +401,9 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     res_el = read_element_frames(result_render)
     # an unlabelled result (the content, a colour transfer) has no Gaussian of the style: no element pixel
     out["element_share"] = 0.0 if res_el is None else element_share(res_el, frames[..., 3], cfg.min_alpha)
-    out["element_share_ratio"] = out["element_share"] / max(out["element_share_style"], 1e-12)
-    status = "share computed"
+    blind = share_blind(style.element)
+    out["element_share_ratio"] = None if blind else out["element_share"] / max(out["element_share_style"], 1e-12)
+    status = f"share ratio not valid: {blind}" if blind else "share computed"
     clusters = None
     if stylize_npz is not None and result.element is not None:
         d = load_npz(stylize_npz, required=("labels", "before_means"))
