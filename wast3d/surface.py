@@ -120,7 +120,7 @@ class SurfaceConfig:
 class StyleCleanConfig:
     enabled: bool = option(True, "false: use the style scene as it is")
     form: str = option("auto", "patch (a ground with elements on it, seen from above), volume (an object seen from every "
-                               "side: its elements laid side by side on a sheet, outer side up; needs element labels) "
+                               "side: its elements, or label-free pieces, laid side by side on a sheet, outer side up) "
                                "or auto: volume where the style is thicker than 0.35 of its width (wast3d.volume)",
                        enum=list(FORMS))
     min_opacity: float = option(0.05, "drop Gaussians below this opacity (translucent haze)", minimum=0, maximum=1)

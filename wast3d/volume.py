@@ -65,15 +65,19 @@ class Form:
     reason: str
 
 
-def thickness(points) -> float:
-    """points [M, 3] -> e_3 / e_2 of the module docstring (2-98 % quantile ranges along the principal axes)."""
+def extents(points) -> np.ndarray:
+    """points [M, 3] -> e_1 >= e_2 >= e_3 [3]: the 2-98 % quantile ranges along the principal axes."""
     x = np.asarray(points, dtype=np.float64)
-    if len(x) < 4:
-        raise ValueError(f"style form: {len(x)} Gaussians are too few to tell a patch from a volume")
     x = x - x.mean(0)
-    axes = np.linalg.svd(x, full_matrices=False)[2]
-    y = x @ axes.T
-    ext = np.quantile(y, 0.98, axis=0) - np.quantile(y, 0.02, axis=0)
+    y = x @ np.linalg.svd(x, full_matrices=False)[2].T
+    return np.quantile(y, 0.98, axis=0) - np.quantile(y, 0.02, axis=0)
+
+
+def thickness(points) -> float:
+    """points [M, 3] -> e_3 / e_2 of the module docstring (:func:`extents`)."""
+    if len(points) < 4:
+        raise ValueError(f"style form: {len(points)} Gaussians are too few to tell a patch from a volume")
+    ext = extents(points)
     return float(ext[2] / max(ext[1], 1e-12))
 
 
@@ -146,11 +150,8 @@ def volume_pieces(means, rgb) -> np.ndarray:
 
 
 def piece_size(points) -> float:
-    """The label-free element size of a volume: its middle extent e_2 over PIECES_ACROSS."""
-    x = np.asarray(points, dtype=np.float64)
-    x = x - x.mean(0)
-    y = x @ np.linalg.svd(x, full_matrices=False)[2].T
-    return float((np.quantile(y[:, 1], 0.98) - np.quantile(y[:, 1], 0.02)) / PIECES_ACROSS)
+    """The label-free element size of a volume: its middle extent e_2 (:func:`extents`) over PIECES_ACROSS."""
+    return float(extents(points)[1] / PIECES_ACROSS)
 
 
 def element_sheet(scene, seed: int = 0):
