@@ -9,6 +9,13 @@
 - element_whole's known answers, on the style itself (its texture reference's cameras): every element
   cut in two by the median plane across its longest axis (its visible pieces halve: ratio ~0.5), in
   four by its two longest axes (~0.25); the confetti's pieces fall to a few pixels (ratio ~0).
+- chips (negative): the result with every element copy flattened to a fifth of its height along its
+  least-variance axis, in place (what a content thinner than an element makes of pebbles): intact
+  must fall, and a style metric that sees whole elements must put it farther from the style.
+
+Every control is also scored label-free: ``segment_intact`` and ``segment_whole_ratio``, with the
+style's relief basins (the texture reference's segments.npz) for elements (wast3d.elements); the
+known answers hold for them where they hold for the labelled pair.
 
 With ``--texture`` the style metrics that claim to see the style's texture (texture_swd, relief_w1)
 face the same two controls: the confetti is rendered by the render stage's own function
@@ -65,6 +72,7 @@ def main(argv=None) -> None:
             m = json.loads(f.read_text())
             rows.append({"pair": pair, "control": role, "method": method, "element_share_ratio": m.get("element_share_ratio"),
                          "element_intact": m.get("element_intact"), "element_whole_ratio": m.get("element_whole_ratio"),
+                         "segment_intact": m.get("segment_intact"), "segment_whole_ratio": m.get("segment_whole_ratio"),
                          "coverage": m.get("coverage"),
                          "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1")})
         ours = dict(results=a.results, content=content, style=style, experiment="default")
@@ -90,6 +98,16 @@ def main(argv=None) -> None:
                "element_whole_ratio": whole / whole_style, "coverage": None}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
+        row.update(segment_scores(a.results, content, style, replace(res, means=shuffled), before, clusters, cams))
+        rows.append(row)
+        chips = flattened(res.means, copy_ids(res.element, clusters))
+        row = {"pair": pair, "control": "chips (negative)", "method": "default, each copy flattened to 1/5 height",
+               "element_intact": element_intact(before, chips, copy_ids(res.element, clusters), cfg)["intact"],
+               "element_whole_ratio": (element_whole(element_pieces(replace(res, means=chips), copy_ids(res.element, clusters),
+                                                                    cams, cfg.piece_tol, cfg.min_alpha)) or 0.0) / whole_style}
+        if a.texture:
+            row.update(texture_controls(a.results, pair, replace(res, means=chips), rows, a.seeds, "chips"))
+        row.update(segment_scores(a.results, content, style, replace(res, means=chips), before, clusters, cams))
         rows.append(row)
         sty = read_ply(own["style"])
         ref_dir = Path(artifact("texture_reference", a.results, content=content, style=style))
@@ -97,13 +115,56 @@ def main(argv=None) -> None:
         for axes, role in ((1, "style, elements cut in two (known ~0.5)"), (2, "style, elements cut in four (~0.25)")):
             cut = cut_elements(sty.means, sty.element, axes)
             w = element_whole(element_pieces(sty, cut, ref_cams, cfg.piece_tol, cfg.min_alpha)) or 0.0
-            rows.append({"pair": pair, "control": role, "method": "the style's texture reference",
-                         "element_whole_ratio": w / whole_style})
+            row = {"pair": pair, "control": role, "method": "the style's texture reference",
+                   "element_whole_ratio": w / whole_style}
+            if own.get("segment_whole_style"):
+                seg = torch.from_numpy(load_npz(ref_dir / "segments.npz")["segments"])
+                w = element_whole(element_pieces(sty, cut_elements(sty.means, seg + 1, axes), ref_cams, cfg.piece_tol,
+                                                 cfg.min_alpha)) or 0.0
+                row["segment_whole_ratio"] = w / own["segment_whole_style"]
+            rows.append(row)
     df = pd.DataFrame(rows)
     out = a.results / "benchmarks" / "element_validation.csv"
     out.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(out, index=False)
     print(df.to_string(index=False))
+
+
+def segment_scores(results: Path, content: str, style: str, scene, before, clusters, cams) -> dict:
+    """segment_intact and segment_whole_ratio of a control ``scene`` (the default result's Gaussians, moved):
+    the evaluate stage's own function on the pair's texture reference and the default run's stylize npz."""
+    from wast3d.elements import ElementConfig, element_intact, element_whole, segment_copies
+    from wast3d.io_utils import load_npz
+    from wast3d.render import element_pieces
+    from wast3d.stages import artifact
+
+    own = json.loads(Path(artifact("eval", results, content=content, style=style, method="default")).read_text())
+    ref = Path(artifact("texture_reference", results, content=content, style=style))
+    if not own.get("segment_whole_style") or not (ref / "segments.npz").exists():
+        return {}
+    cfg = ElementConfig()
+    seg = torch.from_numpy(load_npz(ref / "segments.npz")["segments"])
+    npz = load_npz(artifact("stylize_npz", results, content=content, style=style, experiment="default"))
+    copies = segment_copies(seg, torch.from_numpy(npz["source"]), clusters)
+    whole = element_whole(element_pieces(scene, copies, cams, cfg.piece_tol, cfg.min_alpha)) or 0.0
+    return {"segment_intact": element_intact(before, scene.means, copies, cfg)["intact"],
+            "segment_whole_ratio": whole / own["segment_whole_style"]}
+
+
+def flattened(means: torch.Tensor, copies: torch.Tensor, height: float = 0.2) -> torch.Tensor:
+    """[N, 3] with each copy (id >= 0) squashed to ``height`` of itself along its least-variance axis,
+    about its centroid: chips of the same outline."""
+    out = means.clone()
+    for j in copies[copies >= 0].unique():
+        idx = (copies == j).nonzero().squeeze(1)
+        if len(idx) < 4:
+            continue
+        p = means[idx].double()
+        c = p.mean(0)
+        n = torch.linalg.eigh((p - c).T @ (p - c))[1][:, 0]
+        along = (p - c) @ n
+        out[idx] = (p - (1 - height) * along[:, None] * n).to(means.dtype)
+    return out
 
 
 def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch.Tensor:
@@ -120,7 +181,7 @@ def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch
     return out
 
 
-def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds: int) -> dict:
+def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds: int, name: str = "confetti") -> dict:
     """texture_swd and relief_w1 of the confetti scene (rendered as the pair's result was), the spread of
     texture_swd over ``seeds`` on ours' frames, and each metric's verdict (module docstring)."""
     import statistics
@@ -160,7 +221,7 @@ def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds
     def verdict(pos, neg, spread):
         if pos is None or neg is None:
             return "no collage to compare"
-        return "valid" if neg - pos >= 10 * spread else f"invalid: confetti - collage = {neg - pos:.3g} < 10 x spread"
+        return "valid" if neg - pos >= 10 * spread else f"invalid: {name} - collage = {neg - pos:.3g} < 10 x spread"
 
     return {"texture_swd": tex, "relief_w1": relief, "texture_swd_spread": spread, "relief_w1_spread": relief_spread,
             "texture_swd_verdict": verdict(collage.get("texture_swd"), tex, spread),

@@ -229,7 +229,7 @@ def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Pat
     res = stylize(content, labels, style, reg, selection, cfg, progress, sheet=sheet)
     out, curves, secs = res.scene, res.curves, res.seconds
     write_ply(out_ply, out)
-    save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy())
+    save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy(), source=res.source.numpy())
     rows = [{"cluster": i, "iteration": j, "loss": v} for i, c in enumerate(curves) for j, v in enumerate(c)]
     with atomic_path(out_csv) as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False)
@@ -304,11 +304,16 @@ def run_render(*, scene: Path, reference: Path, out_folder: Path, params: dict, 
 
 
 def run_texture_reference(*, style: Path, content: Path, out_folder: Path, params: dict, progress: bool = True,
-                          registration: Path | None = None) -> None:
+                          registration: Path | None = None, style_form: Path | None = None) -> None:
     """The style's frames at the pixel scale its elements have on renders fitted to the content
     (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
-    ``params``: the render block, and ``up``: the style scene's up (z when not given)."""
-    from .registration import relief_length
+    ``params``: the render block, and ``up``: the style scene's up (z when not given). Where the style has
+    a relief, ``segments.npz`` beside the frames holds its label-free elements, which ``segment_whole``
+    and ``segment_intact`` read (:mod:`wast3d.elements`): ``segments`` [M], the relief's basins
+    (:func:`~wast3d.registration.relief_basins`, one per dome of its top surface), or on a volume's
+    element sheet (``style_form``: the style stage's report) its laid-out elements, which the style
+    stage made from labels or, without, from label-free pieces (:mod:`wast3d.volume`)."""
+    from .registration import relief_basins, relief_length
     from .render import RenderConfig, render_texture_reference
 
     params = dict(params)
@@ -324,6 +329,17 @@ def run_texture_reference(*, style: Path, content: Path, out_folder: Path, param
             log.warning("texture reference: %s: no element length (%s); the coarse Chamfer will not be computed",
                         style_ply, e)
     info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, s0, length, up)
+    sheet = style_form is not None and read_json(style_form).get("form") == "volume"
+    if sheet and style.element is None:
+        raise ValueError(f"{style_ply}: a volume's element sheet ({style_form}) without element labels")
+    if sheet:  # the elements the style stage laid out, one segment each
+        segments = torch.unique(style.element.long(), return_inverse=True)[1]
+        how = "laid-out elements of the volume's sheet"
+    elif length is not None:
+        segments, how = relief_basins(style.means, reg.style_up.tolist(), length * s0), "relief basins"
+    if sheet or length is not None:  # the style's own elements, label-free: the element metrics' segments
+        save_npz(Path(out_folder) / "segments.npz", segments=segments.numpy(), how=how)
+        log.info("texture reference: %d segments (%s) of %s", int(segments.max()) + 1, how, style_ply)
     log.info("texture reference: %s at zoom %.3f (cameras fitted to it, its elements at their size on %s) -> %s",
              style_ply, info["zoom"], content, out_folder)
 
@@ -430,6 +446,49 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     return {**out, "element_status": status}
 
 
+def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style: int, texture_reference: Path,
+                      stylize_npz: Path | None, cfg) -> dict:
+    """The label-free element metrics of one result (``segment_whole``, ``segment_intact``,
+    :mod:`wast3d.elements`): the style's segments from ``texture_reference``/segments.npz, each result
+    Gaussian's from the style Gaussian it copies (``source`` in ``stylize_npz``); the result's ``n_frames``
+    turntable views against the texture reference's ``n_style``. No stylize_npz (the content, a colour
+    transfer): no copy of the style, 0."""
+    from .elements import element_intact, element_whole, segment_copies
+    from .render import element_pieces, read_cameras
+
+    out = {"segment_whole": None, "segment_whole_style": None, "segment_whole_ratio": None, "segment_intact": None}
+    seg_file = Path(texture_reference) / "segments.npz"
+    if not seg_file.exists():
+        return {**out, "segment_status": f"not computed: {seg_file} does not exist (a texture reference without a "
+                                         "registration, or a style without relief)"}
+    seg_npz = load_npz(seg_file, required=("segments",))
+    segments = torch.from_numpy(seg_npz["segments"]).long()
+    if len(segments) != len(style):
+        raise ValueError(f"{seg_file}: 'segments' has {len(segments)} entries, the style {len(style)} Gaussians")
+    style_whole = element_whole(element_pieces(style, segments, read_cameras(texture_reference, n_style),
+                                               cfg.piece_tol, cfg.min_alpha))
+    out["segment_whole_style"] = style_whole
+    if stylize_npz is None:
+        whole = 0.0 if style_whole else None
+        return {**out, "segment_whole": whole, "segment_whole_ratio": whole,
+                "segment_status": "no copy of a style Gaussian (not a stylized result): whole 0"}
+    d = load_npz(stylize_npz, required=("labels", "before_means"))
+    if "source" not in d:
+        return {**out, "segment_status": f"not computed: {stylize_npz} has no 'source' (written by an older wast3d: "
+                                         "run the stylize stage again)"}
+    for key in ("labels", "before_means", "source"):
+        if len(d[key]) != len(result):
+            raise ValueError(f"{stylize_npz}: '{key}' has {len(d[key])} entries, the result {len(result)} Gaussians")
+    copies = segment_copies(segments, torch.from_numpy(d["source"]), torch.from_numpy(d["labels"]))
+    out["segment_intact"] = element_intact(torch.from_numpy(d["before_means"]), result.means, copies, cfg)["intact"]
+    if style_whole:
+        whole = element_whole(element_pieces(result, copies, read_cameras(result_render, n_frames), cfg.piece_tol,
+                                             cfg.min_alpha)) or 0.0
+        out.update(segment_whole=whole, segment_whole_ratio=whole / style_whole)
+    how = str(seg_npz["how"]) if "how" in seg_npz else "relief basins"
+    return {**out, "segment_status": f"{int(segments.max()) + 1} segments ({how})"}
+
+
 def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Path, style_render: Path,
                  texture_reference: Path, content_render: Path, out_json: Path, params: dict,
                  stylize_npz: Path | None = None) -> None:
@@ -465,6 +524,8 @@ def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Pat
     texture_frames = read_frames(texture_reference)  # a missing or corrupt reference is an error, not a result
     out.update(evaluate_elements(result, style, frames, result_render, texture_frames, texture_reference, stylize_npz,
                                  ecfg))
+    out.update(evaluate_segments(result, style, len(frames), result_render, len(texture_frames), texture_reference,
+                                 stylize_npz, ecfg))
     try:
         tex = texture_levels(frames, texture_frames, tcfg)
         out["texture_swd"] = tex["texture_swd"]

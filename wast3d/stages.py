@@ -179,7 +179,7 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
         In("style_form", "the style stage's report (JSON, style-clean): a volume's element sheet flows element by "
                          "element", required=False),
         Out("ply", "the stylized scene before scale readjustment (PLY)"),
-        Out("npz", "each Gaussian's cluster and its position before the flow (NPZ)"),
+        Out("npz", "each Gaussian's cluster, its position before the flow and the style Gaussian it is a copy of (NPZ)"),
         Out("csv", "loss per cluster and step (CSV)"),
         Out("json", "time, device, losses first and last, the config (JSON)", beside="csv"),
         Out("png", "the loss curves (PNG)", beside="csv"),
@@ -200,7 +200,9 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
           "renders (the reference of texture_swd)", "run_texture_reference", (
               _STYLE, In("content", "content scene the renders are fitted to (PLY)"),
               In("registration", "its base scale s0 sets the elements' size (NPZ)", required=False),
-              Out("folder", "render folder"),
+              In("style_form", "the style stage's report (JSON, style-clean): a volume's sheet is segmented by its "
+                               "laid-out elements", required=False),
+              Out("folder", "render folder; with a registration, segments.npz: the style's label-free elements"),
           ), "wast3d.render:RenderConfig", "evaluation.render", progress=True, passthrough=("up",)),
     Stage("colour-transfer", "baseline: content geometry, colours mapped to the style's by entropic OT",
           "run_colour_transfer", (

@@ -775,13 +775,15 @@ class Stylized:
     """What :func:`stylize` returns. ``scene``: the stylized Gaussians in the content frame [M];
     ``labels`` [M]: each one's cluster; ``curves``: per cluster solved, its loss per step; ``seconds``:
     per cluster solved, its time; ``before_means`` [M, 3]: each Gaussian's position before the
-    optimization, mapped back to the content frame (the scale readjustment's reference)."""
+    optimization, mapped back to the content frame (the scale readjustment's reference); ``source`` [M]:
+    the style Gaussian each one is a copy of (its index in the style scene)."""
 
     scene: GaussianScene
     labels: torch.Tensor
     curves: list[list[float]]
     seconds: list[float]
     before_means: torch.Tensor
+    source: torch.Tensor
 
 
 def own_copies(nearest: torch.Tensor, cluster: int, part: torch.Tensor | None, share: float) -> torch.Tensor:
@@ -956,4 +958,5 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
         parts.append(out.transform(rotation=reg.R[i].T.to(out.dtype), translation=reg.t[i].to(out.dtype),
                                    scale=(1.0 / reg.s[i]).to(out.dtype)))
         labs.append(lab)
-    return Stylized(GaussianScene.concat(parts), torch.cat(labs), curves, secs, torch.cat(before_parts).float())
+    return Stylized(GaussianScene.concat(parts), torch.cat(labs), curves, secs, torch.cat(before_parts).float(),
+                    torch.cat([sel.long() for _, sel, _ in todo]))

@@ -50,6 +50,7 @@ rule texture_reference:
         style=lambda w: style_points(w.style),
         content=lambda w: content_points(w.content),
         registration=results("registration", partition=REFERENCE_PARTITION),
+        style_form=lambda w: [beside("style", ".json", scene=w.style)] if needs_style_clean(w.style) else [],
     output:
         folder=directory(results("texture_reference")),
     params:
