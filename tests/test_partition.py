@@ -740,6 +740,35 @@ def test_base_scale_rules():
     assert how["rule"].startswith("density") and "flat" in how["note"] and s2 > 0
 
 
+def test_follow_thickness_shrinks_the_elements_of_thin_clusters_only():
+    """A sphere of radius 1 with a tube of radius 0.05 (a leg) beside it, elements 0.4 wide on the content:
+    at follow_thickness 1 the tube's clusters get elements 4x smaller (its diameter 0.1, capped at
+    MAX_SHRINK 4), the sphere's keep the full size; the registration maps the tube's clusters onto that
+    much more of the style."""
+    from wast3d.procedural import content_scene, style_scene
+    from wast3d.registration import thickness_factors
+
+    g = torch.Generator().manual_seed(0)
+    sphere = content_scene("sphere", 4000).means.double()
+    sphere = sphere / sphere.norm(dim=1).max()
+    th = torch.rand(4000, generator=g, dtype=D64) * 2 * torch.pi
+    tube = torch.stack([torch.rand(4000, generator=g, dtype=D64) * 2 + 1.5, 0.05 * th.cos(), 0.05 * th.sin()], 1)
+    pts = torch.cat([sphere, tube])
+    labels = torch.cat([(sphere[:, 2] > 0).long(), 2 + (tube[:, 0] > 2.5).long()])
+    cfg = RegistrationConfig(follow_thickness=1.0)
+    f, T = thickness_factors(pts, labels, 4, 0.4, cfg, torch.Generator().manual_seed(0))
+    assert f[:2].tolist() == [1.0, 1.0] and f[2:].tolist() == [4.0, 4.0]
+    assert 0.08 < float(T[2]) < 0.12 and not torch.isfinite(T[:2]).any()  # the sphere: thicker than the search
+    f2, _ = thickness_factors(pts, labels, 4, 0.4, replace(cfg, follow_thickness=2.0), torch.Generator().manual_seed(0))
+    assert torch.allclose(f2[2:], f2.new_tensor([2.0, 2.0]), rtol=0.2)  # 0.4 / (2 x 0.1)
+    peb = style_scene("pebbles", 6000).means.double()
+    plain = register(pts, labels, peb, RegistrationConfig(landings=1, yaws=2, iterations=5, refine_iterations=5))
+    thin = register(pts, labels, peb, RegistrationConfig(landings=1, yaws=2, iterations=5, refine_iterations=5,
+                                                         follow_thickness=1.0))
+    ratio = element_size_factors(thin) / element_size_factors(plain)
+    assert float(ratio[:2].max()) > 0.8 and float(ratio[2:].max()) < 0.5  # the tube's elements smaller
+
+
 def test_outward_normals_and_style_up():
     """Cluster normals of either sign turn outward on a sphere and on a thin tube; a patch's up is the
     side its elements stand on."""

@@ -24,6 +24,11 @@ Method: multi-start anisotropic ICP, batched over all clusters x starts at once.
   (a median 1.03-1.2x on the project's pairs, the trained weave 1.19x; 1.36x on it when it was pretrained
   to 1,500 steps, its strands sparse clumps that pulled the map to the bound, and on the fruit capture);
   ``registration.json`` reports it and the log warns beyond 1.2x.
+- Element scale that follows the content (``follow_thickness`` > 0; off by default): a cluster thinner
+  than an element is wide gets its own base scale, s0 times :func:`thickness_factors`, so that its
+  elements come out smaller and the content keeps its width there (the ant's legs: coarse Chamfer
+  -20-26 % against boulders 4-9x wider than a leg, at 3-8x the Sinkhorn stage's time;
+  studies/follow_thickness).
 - ICP converges slowly and then snaps: from 29 degrees off, 30 rounds left 1.7 spacings of residual
   and 100 rounds reached 1e-11 on a test patch, hence the round counts.
 - Starts, ``landings x yaws`` per cluster: landing points (:func:`landing_points`: by default drawn
@@ -64,6 +69,8 @@ log = logging.getLogger(__name__)
 
 
 LANDINGS = ("area", "centre")
+MAX_SHRINK = 4.0  # follow_thickness shrinks elements at most this much: 16x the style area per cluster
+THICKNESS_POINTS = 64  # points per cluster whose local thickness follow_thickness takes the median of
 
 
 @dataclass
@@ -89,6 +96,11 @@ class RegistrationConfig:
                                          " s0 = style spacing / content spacing (density-matched, depends on the "
                                          "Gaussian counts)", minimum=0)
     scale_range: float = option(1.5, "the scale is bounded to [s0 / range, s0 * range]", minimum=1)
+    follow_thickness: float = option(0.0, "element scale that follows the content: where a cluster is thinner (its "
+                                          "median local thickness) than an element's width on the content over this, "
+                                          "its base scale is raised so that its elements come out that much smaller "
+                                          "(at most 4x); 0: one element size everywhere (studies/follow_thickness)",
+                                     minimum=0)
     style_up: str = option("z", "the side the style's elements stand on (outward content normals are mapped onto it): a"
                                 " world axis, as the views of the style were taken (export_views, style_clean and the "
                                 "texture reference look from +z), or auto (the skew of the heights; fooled by a trained"
@@ -139,6 +151,30 @@ class Registration:
             raise ValueError(f"registration file lacks {', '.join(missing)} (written by an older wast3d?): run register again")
         return cls(**{k: (torch.from_numpy(np.asarray(d[k])) if np.asarray(d[k]).ndim else float(d[k]))
                       for k in cls.__dataclass_fields__})
+
+
+def thickness_factors(content: torch.Tensor, labels: torch.Tensor, K: int, width: float, cfg: "RegistrationConfig",
+                      g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """How much smaller each cluster's elements must be to fit the content there (``follow_thickness``):
+    content [N, 3], labels [N], K clusters, ``width`` an element's width on the content -> (factors [K]
+    >= 1, the clusters' thickness [K]). A cluster's thickness T_k is the median local thickness
+    (:func:`~wast3d.geometry.local_thickness`, the distance through the content along its normal; inf on
+    an open sheet) of at most ``THICKNESS_POINTS`` of its points, and
+
+        f_k = clamp(width / (follow_thickness * T_k), 1, MAX_SHRINK)
+
+    so an element is at most ``follow_thickness`` times as wide as the content is thick (an ant's leg
+    gets pebbles it can carry, its body the full size)."""
+    from .geometry import local_thickness, robust_bounds
+
+    pick = cap_per_label(labels, THICKNESS_POINTS, g)
+    # only thicknesses below width / follow_thickness change a factor: the search along the normal stops there
+    reach = width / cfg.follow_thickness / (2 * robust_bounds(content, 0.01)[1])
+    t = torch.from_numpy(local_thickness(content.double().numpy(), content[pick].double().numpy(), reach=reach))
+    T = torch.stack([t[labels[pick] == k].median() if bool((labels[pick] == k).any()) else t.new_tensor(float("inf"))
+                     for k in range(K)])
+    f = (width / (cfg.follow_thickness * T)).clamp(1.0, MAX_SHRINK)
+    return torch.where(torch.isfinite(T), f, torch.ones_like(f)), T
 
 
 def element_size_factors(reg: Registration) -> torch.Tensor:
@@ -551,12 +587,22 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     s0, how = base_scale(content, style, cfg, diameter)
     log.info("registration: s0 = %.4g by %s", s0, ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                                                for k, v in how.items()))
-    s_lo, s_hi = s0 / cfg.scale_range, s0 * cfg.scale_range
-
     sub = cap_per_label(labels, cfg.subsample, g)  # <= cfg.subsample points per cluster for the multi-start phase
     signs = 1 if cfg.orient else 2
     M = cfg.landings * cfg.yaws * signs
     B = K * M
+    s0k = torch.full((K,), s0, dtype=torch.float64)  # each cluster's base scale
+    if cfg.follow_thickness > 0:
+        if "relief_length" not in how:
+            log.warning("registration: follow_thickness left out: s0 is not from the style's relief (%s)", how["rule"])
+        else:
+            f, T = thickness_factors(content, labels, K, how["relief_length"] / s0, cfg,
+                                     torch.Generator().manual_seed(cfg.seed))
+            s0k = s0 * f
+            log.info("registration: follow_thickness %.3g: %d of %d clusters thinner than an element (width %.4g); their "
+                     "elements shrunk a median %.2fx (max %.2fx)", cfg.follow_thickness, int((f > 1).sum()), K,
+                     how["relief_length"] / s0, float(f[f > 1].median()) if bool((f > 1).any()) else 1.0, float(f.max()))
+    s_lo, s_hi = (s0k / cfg.scale_range)[:, None], (s0k * cfg.scale_range)[:, None]
     # start j of a cluster: landing j // (signs yaws), normal sign j % signs, yaw (j // signs) % yaws
     j = torch.arange(M)
     land, sign, yaw_i = j // (signs * cfg.yaws), j % signs, (j // signs) % cfg.yaws
@@ -587,12 +633,13 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     Rz = quat_to_rotmat(torch.stack([torch.cos(yaw / 2), torch.zeros_like(yaw), torch.zeros_like(yaw),
                                      torch.sin(yaw / 2)], -1))
     R0 = Fs @ Rz @ Fc.repeat_interleave(M, 0).transpose(1, 2)
-    s_init = torch.full((B, 3), s0, dtype=torch.float64)
+    s_init = s0k.repeat_interleave(M)[:, None].expand(B, 3).clone()
     # point instances: every subsampled point once per start
     inst_pt = sub.repeat(M)
     inst_tf = labels[sub].repeat(M) * M + torch.arange(M).repeat_interleave(len(sub))
     index = KnnIndex(style)  # one KD-tree for every ICP round of both phases
-    R, s, p, res, res0 = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo, s_hi, cfg.iterations, index)
+    R, s, p, res, res0 = _icp(cent[inst_pt], inst_tf, B, style, R0, s_init, p0, s_lo.repeat_interleave(M, 0),
+                              s_hi.repeat_interleave(M, 0), cfg.iterations, index)
     best = (res.view(K, M)).argmin(1)
     pick = torch.arange(K) * M + best
     R, s, p = R[pick], s[pick], p[pick]
