@@ -115,3 +115,23 @@ def write_tiny_clip(folder: Path, seed: int = 0) -> tuple[Path, Path]:
         torch.manual_seed(seed)
         torch.save(open_clip.create_model("wast3d-tiny-clip", pretrained=None).state_dict(), ckpt)
     return cfg, ckpt
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """The tiny workflow (tests/test_workflow.py's TINY, CLIP from a tiny random model) run once: a
+    session's tests read it, and the ones that run more copy it first (:func:`copy_of_tiny_run`)."""
+    from test_workflow import snake, tiny_config
+
+    wd = tmp_path_factory.mktemp("wf")
+    snake(wd, config=tiny_config(wd))
+    return wd
+
+
+def copy_of_tiny_run(tiny_run: Path, to: Path) -> Path:
+    """The tiny run's work folder copied to ``to`` (times kept, so that Snakemake finds its outputs up to
+    date there): a test that runs more of the workflow starts from it without touching the original."""
+    import shutil
+
+    shutil.copytree(tiny_run, to, symlinks=True, copy_function=shutil.copy2)
+    return to

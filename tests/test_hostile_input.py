@@ -262,16 +262,23 @@ def test_user_errors_are_one_line_and_every_reader_takes_drop_invalid(tmp_path):
     ply = PlyData.read(str(tmp_path / "s.ply"))
     ply["vertex"]["x"][3] = np.nan
     ply.write(str(tmp_path / "nan.ply"))
-    for cmd in (["info"], ["export"], ["import-ply"], ["preview"]):
-        out = tmp_path / f"o_{cmd[0]}{'.png' if cmd[0] == 'preview' else '.ply'}"
-        extra = [] if cmd[0] == "info" else [out]
-        bad = _run(*cmd, tmp_path / "nan.ply", *extra)
-        assert bad.returncode in (1, 2) and "--drop-invalid" in bad.stdout + bad.stderr, cmd
-        good = _run(*cmd, tmp_path / "nan.ply", *extra, "--drop-invalid")
-        assert good.returncode == 0, (cmd, good.stderr[-1500:])
+    from concurrent.futures import ThreadPoolExecutor
+
     (tmp_path / "adir").mkdir()
-    r = _run("export", tmp_path / "s.ply", tmp_path / "adir")
-    assert r.returncode == 2 and "is a folder" in r.stderr and "Traceback" not in r.stderr
+    calls = []
+    for cmd in ("info", "export", "import-ply", "preview"):
+        extra = [] if cmd == "info" else [tmp_path / f"o_{cmd}{'.png' if cmd == 'preview' else '.ply'}"]
+        calls += [(cmd, tmp_path / "nan.ply", *extra), (cmd, tmp_path / "nan.ply", *extra, "--drop-invalid")]
+    calls.append(("export", tmp_path / "s.ply", tmp_path / "adir"))
+    with ThreadPoolExecutor(2) as pool:  # independent commands, two at a time
+        done = list(pool.map(lambda c: _run(*c), calls))
+    for c, r in zip(calls, done):
+        if c[-1] == tmp_path / "adir":
+            assert r.returncode == 2 and "is a folder" in r.stderr and "Traceback" not in r.stderr
+        elif c[-1] == "--drop-invalid":
+            assert r.returncode == 0, (c, r.stderr[-1500:])
+        else:
+            assert r.returncode in (1, 2) and "--drop-invalid" in r.stdout + r.stderr, c
 
 
 # ---- the config: bounded, finite, and its errors name the file and the key -------------------------
@@ -327,7 +334,10 @@ def test_config_bombs_and_bad_values_stop_at_once_naming_the_file_and_key(tmp_pa
             "partitions.default.cluster.n_clusters: 50000 clusters of the 20000 Gaussians of content 'ant'",
         "evaluation:\n  render: {size: 100000}\n": "evaluation.render.size: 100000 is greater than the maximum of 16384",
     }
-    for text, message in cases.items():
-        r, files = dry_run(tmp_path, text)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:  # independent dry runs, two at a time
+        runs = list(pool.map(lambda text: dry_run(tmp_path, text), cases))
+    for (text, message), (r, files) in zip(cases.items(), runs):
         assert r.returncode != 0 and f"config {files[0]}: {message}" in r.stderr, (text, r.stderr[-1500:])
         assert len(r.stderr) < 2000  # one message, not the config printed back

@@ -89,28 +89,52 @@ def test_the_seam_metrics_score_a_result_of_one_style_as_its_control():
     assert band_coverage(a, a, torch.zeros(1, 4, 4)) is None
 
 
-def test_two_styles_on_a_tiny_content_through_the_workflow(tmp_path):
-    """A torus, pebbles above z = 0 and grass below, through the workflow: the content's k-means is the one
-    a single style uses (nothing upstream re-runs for the regions), each region's Gaussians come from its
-    style and lie over its region, the merged result counts both, and the seams hold the bar."""
-    from test_workflow import TINY, jobs, snake
-
-    from wast3d.geometry import kdtree
-    from wast3d.ply import read_ply
+def regions_config() -> dict:
+    """The tiny config (tests/test_workflow.py) with a set of two regions on its torus: pebbles above
+    z = 0, grass below."""
+    from test_workflow import TINY
 
     cfg = copy.deepcopy(TINY)
     cfg.pop("sweeps")
     cfg["scenes"]["grs"] = {"source": "procedural", "kind": "style", "name": "grass", "n_gaussians": 3000}
-    cfg["partitions"]["default"]["cluster"] = {"n_clusters": 6}
     cfg["pairs"] = [["blob", "peb"]]
     cfg["table1"] = {"pairs": [], "methods": {"default": "ours"}}
     cfg["regions"] = {"mix": {"content": "blob", "styles": [
         {"style": "peb", "half_space": {"normal": [0, 0, 1], "offset": 0.0}}, {"style": "grs", "rest": True}]}}
-    snake(tmp_path, "--", "results/stylize/blob__peb/default/final.ply", config=cfg)
-    todo = jobs(snake(tmp_path, "-n", "--", "results/tables/regions.csv"))
+    return cfg
+
+
+def test_regions_reuse_the_single_style_run(tiny_run, tmp_path):
+    """Over the tiny run (the torus with pebbles alone), the regions' DAG runs no k-means again and clusters
+    again only where the grass, which the single-style run never saw, needs its own registration input."""
+    from conftest import copy_of_tiny_run
+    from test_workflow import jobs, snake
+
+    wd = copy_of_tiny_run(tiny_run, tmp_path / "wf")
+    assert jobs(snake(wd, "-n", "--", "results/stylize/blob__peb/default/final.ply", config=regions_config())) == {}
+    todo = jobs(snake(wd, "-n", "--", "results/tables/regions.csv"))
     assert "cluster" not in todo and "procedural_scene" in todo and todo["region_clusters"] == 2  # grass only
-    snake(tmp_path, "--", "results/tables/regions.csv")
-    r = tmp_path / "results"
+    assert todo["merge_regions"] == 1 and todo["seams"] == 1 and todo["regions_table"] == 1
+
+
+@pytest.mark.slow  # about 40 jobs, 2 minutes: `pytest -m slow`
+def test_two_styles_on_a_tiny_content_through_the_workflow(tiny_run, tmp_path):
+    """A torus, pebbles above z = 0 and grass below, through the workflow, from the tiny run's results (the
+    torus with pebbles alone): the content's k-means is the one a single style uses (nothing upstream
+    re-runs for the regions), each region's Gaussians come from its style and lie over its region, the
+    merged result counts both, and the seams hold the bar."""
+    from conftest import copy_of_tiny_run
+    from test_workflow import jobs, snake
+
+    from wast3d.geometry import kdtree
+    from wast3d.ply import read_ply
+
+    wd = copy_of_tiny_run(tiny_run, tmp_path / "wf")
+    assert jobs(snake(wd, "-n", "--", "results/stylize/blob__peb/default/final.ply", config=regions_config())) == {}
+    todo = jobs(snake(wd, "-n", "--", "results/tables/regions.csv"))
+    assert "cluster" not in todo and "procedural_scene" in todo and todo["region_clusters"] == 2  # grass only
+    snake(wd, "--", "results/tables/regions.csv")
+    r = wd / "results"
     region = np.load(r / "regions/mix/regions.npz")["region"]
     content = read_ply(r / "scenes/blob/scene.ply")
     assert len(region) == len(content) and set(region.tolist()) == {0, 1}
@@ -131,4 +155,4 @@ def test_two_styles_on_a_tiny_content_through_the_workflow(tmp_path):
         assert 1 / 1.5 <= v["density_ratio"] <= 1.5, seams["regions"]
     table = (r / "tables/regions.md").read_text()
     assert "| blob | mix | 0 | peb |" in table and "| blob | mix | 1 | grs |" in table
-    yaml.safe_load((tmp_path / "config/config.yaml").read_text())
+    yaml.safe_load((wd / "config/config.yaml").read_text())

@@ -25,7 +25,7 @@ TINY = {
         "peb": {"source": "procedural", "kind": "style", "name": "pebbles", "n_gaussians": 3000},
     },
     "preview": {"views": 2, "size": 48},
-    "partitions": {"default": {"cluster": {"n_clusters": 3},
+    "partitions": {"default": {"cluster": {"n_clusters": 6},
                                "register": {"landings": 1, "yaws": 2, "iterations": 4, "refine_iterations": 4},
                                "select": {"k": 2}}},
     "experiments": {"default": {"stylize": {"iterations": 3}}},
@@ -196,13 +196,6 @@ def tiny_config(wd: Path) -> dict:
     return cfg
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    wd = tmp_path_factory.mktemp("wf")
-    snake(wd, config=tiny_config(wd))
-    return wd
-
-
 def test_whole_dag_artifacts(tiny_run):
     from wast3d.ply import read_ply
 
@@ -212,8 +205,8 @@ def test_whole_dag_artifacts(tiny_run):
         assert (r / "scenes" / scene / "preview.png").stat().st_size > 0
     cl = np.load(r / "partition/blob/default/clusters.npz")
     info = json.loads((r / "partition/blob/default/clusters.json").read_text())
-    # 3 k-means clusters, each split by its normals until flat (cluster.flatness)
-    assert info["requested_clusters"] == 3 and cl["labels"].max() + 1 == 3 + info["split_wrapped_clusters"]
+    # 6 k-means clusters, each split by its normals until flat (cluster.flatness)
+    assert info["requested_clusters"] == 6 and cl["labels"].max() + 1 == 6 + info["split_wrapped_clusters"]
     assert cl["normals"].shape == (len(cl["labels"]), 3)
     reg = np.load(r / "register/blob__peb/default/registration.npz")
     assert np.isfinite(reg["R"]).all() and np.allclose(np.linalg.det(reg["R"]), 1)
@@ -253,6 +246,10 @@ def test_whole_dag_artifacts(tiny_run):
     assert t1.coarse_chamfer.notna().all() and (t1.coarse_chamfer[kept] < 0.5).all()
     # no copy of a style element in the content or a colour transfer; ours shows pieces of them
     assert (t1.element_whole_ratio[kept] == 0).all() and (t1.element_whole_ratio[~kept] > 0).all()
+    # the same with the style's relief basins for elements (no label read): the texture reference writes them
+    assert (r / "render/texture_reference/blob__peb/segments.npz").exists()
+    assert (t1.segment_whole_ratio[kept] == 0).all() and (t1.segment_whole_ratio[~kept] > 0).all()
+    assert t1.segment_intact[kept].isna().all() and t1.segment_intact[~kept].between(0, 1).all()
     assert (t1.colour_sinkhorn[t1.run == "colour_ot"] < t1.colour_sinkhorn[t1.run == "input"].iloc[0]).all()
     assert np.isfinite(t1.time_s[t1.run != "input"]).all() and (t1.peak_mem_mb[t1.run != "input"] > 0).all()
     assert "not computed" not in (r / "tables/table1.md").read_text()
@@ -260,28 +257,37 @@ def test_whole_dag_artifacts(tiny_run):
     assert page.count("<tr>") == 1 + len(t1) and "<th>content_chamfer</th>" in page and "colour transfer" in page
 
 
-def test_caching_reruns_only_what_a_change_affects(tiny_run):
+def test_caching_reruns_only_what_a_change_affects(tiny_run, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
     base = tiny_config(tiny_run)
-    assert jobs(snake(tiny_run, "-n", config=copy.deepcopy(base))) == {}
+
+    def changed(edit) -> Path:
+        """A config file holding the tiny run's config with ``edit`` applied (given over the work folder's)."""
+        cfg = copy.deepcopy(base)
+        edit(cfg)
+        path = tmp_path / f"c{len(list(tmp_path.glob('c*.yaml')))}.yaml"
+        path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+        return path
+
+    edits = [lambda c: None,
+             lambda c: c["experiments"]["default"]["stylize"].update(sinkhorn={"blur": 0.1}),
+             lambda c: c["partitions"]["default"]["cluster"].update(n_clusters=2),
+             lambda c: c["evaluation"]["metrics"].update(patches=9),
+             lambda c: c["evaluation"]["render"].update(frames=5)]
+    files = [changed(e) for e in edits]
+    with ThreadPoolExecutor(2) as pool:  # dry runs write nothing: two at a time
+        same, blur, clusters, metrics, frames = pool.map(
+            lambda f: jobs(snake(tiny_run, "-n", "--configfile", str(f))), files)
+    assert same == {}
     downstream = {"render_method", "evaluate", "comparison_sheet", "methods_sheet", "turntable_page", "table1", "all"}
-    cfg = copy.deepcopy(base)
-    cfg["experiments"]["default"]["stylize"]["sinkhorn"] = {"blur": 0.1}
-    j = jobs(snake(tiny_run, "-n", config=cfg))
     # the default experiment and the sweep variant built on it; the baseline and the input are untouched
-    assert set(j) == {"sinkhorn", "rescale", "result_preview", "summary"} | downstream and j["evaluate"] == 2
-    cfg = copy.deepcopy(base)
-    cfg["partitions"]["default"]["cluster"]["n_clusters"] = 2
+    assert set(blur) == {"sinkhorn", "rescale", "result_preview", "summary"} | downstream and blur["evaluate"] == 2
     # the texture reference shows the style at the registration's scale s0, so it follows the partition
-    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {
-        "cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary",
-        "texture_reference"} | downstream
-    cfg = copy.deepcopy(base)
-    cfg["evaluation"]["metrics"]["patches"] = 9
-    assert jobs(snake(tiny_run, "-n", config=cfg)) == {"evaluate": 4, "table1": 1, "all": 1}
-    cfg = copy.deepcopy(base)
-    cfg["evaluation"]["render"]["frames"] = 5
-    assert set(jobs(snake(tiny_run, "-n", config=cfg))) == {"render_method", "render_scene", "texture_reference"} | downstream
-    snake(tiny_run, "-n", config=copy.deepcopy(base))  # restore the config file
+    assert set(clusters) == {"cluster", "register", "select", "sinkhorn", "rescale", "result_preview", "summary",
+                             "texture_reference"} | downstream
+    assert metrics == {"evaluate": 4, "table1": 1, "all": 1}
+    assert set(frames) == {"render_method", "render_scene", "texture_reference"} | downstream
 
 
 def test_a_parse_with_known_blocks_imports_no_torch(tiny_run, monkeypatch):
@@ -444,15 +450,17 @@ def slurm_exit_codes(ids: list[int]) -> dict[int, int]:
 
 
 # Each SLURM job runs Snakemake twice (the job step, then srun's), about 15 s a job on this machine's
-# 2 cores: the default suite sends the stages up to eq. 9 (6 jobs: the 2 scenes, k-means, registration,
-# selection, the Sinkhorn stage on 2 CPUs); the whole DAG (40 jobs, renders, evaluation and Table 1
-# included) is the slow variant.
-SLURM_PARTS = {"stylized": (["results/stylize/blob__peb/default/stylized.ply"], 6),
+# 2 cores: the default suite sends the 2 scenes and k-means (3 jobs; the sbatch arguments of every rule
+# are test_slurm_profile_maps_resources_to_sbatch's); the stages up to eq. 9 (6 jobs, the Sinkhorn stage
+# on 2 CPUs) and the whole DAG (40 jobs, renders, evaluation and Table 1 included) are slow variants.
+SLURM_PARTS = {"clustered": (["results/partition/blob/default/clusters.npz", "results/scenes/peb/scene.ply"], 3),
+               "stylized": (["results/stylize/blob__peb/default/stylized.ply"], 6),
                "whole": ([], 20)}
 
 
 @pytest.mark.slurm
-@pytest.mark.parametrize("part", ["stylized", pytest.param("whole", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("part", ["clustered", pytest.param("stylized", marks=pytest.mark.slow),
+                                  pytest.param("whole", marks=pytest.mark.slow)])
 def test_tiny_workflow_through_a_real_slurm_cluster_equals_the_local_run(local_slurm, tiny_run, tmp_path, part):
     """The tiny workflow's jobs as sbatch jobs on the local cluster (profile slurm-local): each job id
     is one the controller ran to exit status 0, and the results equal the local run's."""
@@ -467,9 +475,12 @@ def test_tiny_workflow_through_a_real_slurm_cluster_equals_the_local_run(local_s
     codes = slurm_exit_codes(ids)
     assert codes == {i: 0 for i in ids}, "jobs the controller did not run to exit 0"
     ours, local = tmp_path / "results", tiny_run / "results"
-    files = ["stylize/blob__peb/default/stylized.ply", "scenes/peb/scene.ply"]
-    for f in files + (["stylize/blob__peb/default/final.ply", "stylize/blob__peb/abl-xyz/final.ply"]
-                      if part == "whole" else []):
+    files = {"clustered": [], "stylized": ["stylize/blob__peb/default/stylized.ply"],
+             "whole": ["stylize/blob__peb/default/stylized.ply", "stylize/blob__peb/default/final.ply",
+                       "stylize/blob__peb/abl-xyz/final.ply"]}[part]
+    a, b = (np.load(d / "partition/blob/default/clusters.npz")["labels"] for d in (ours, local))
+    np.testing.assert_array_equal(a, b)
+    for f in ["scenes/peb/scene.ply", *files]:
         a, b = read_ply(ours / f).tensors(), read_ply(local / f).tensors()
         assert a.keys() == b.keys()
         for k in a:
@@ -533,6 +544,7 @@ def comparable(folder: Path) -> dict[str, object]:
     return out
 
 
+@pytest.mark.slow  # three runs of the workflow (about 2 minutes): `pytest -m slow`
 def test_a_killed_run_resumes_to_the_same_outputs(tmp_path):
     """`wast3d run` killed (SIGKILL, the whole process group) mid-stylization and again mid-render, then
     run again, ends with the outputs of a run never interrupted, byte for byte. The target is the method's
