@@ -178,3 +178,28 @@ def test_the_share_ratio_is_not_read_on_a_sheet():
     sheet, _ = element_sheet(make_scene("style", "bouquet", 3000, seed=0))
     assert "volume's sheet" in share_blind(sheet.element)
     assert share_blind(make_scene("style", "pebbles", 3000, seed=0).element) is None
+
+
+def test_the_texture_reference_segments_a_sheet_by_its_laid_out_elements(tmp_path):
+    """A volume read without labels (its elements label-free pieces): the texture reference writes one
+    segment per laid-out element, what segment_intact and segment_whole read; without the style's report
+    and without a registration (no relief length) it writes none."""
+    from wast3d.io_utils import load_npz
+    from wast3d.pipeline import run_style_clean, run_texture_reference
+    from wast3d.ply import read_ply, write_ply
+
+    cone = make_scene("style", "pinecone", 2000, seed=0)
+    cone.element = None
+    write_ply(tmp_path / "cone.ply", cone)
+    write_ply(tmp_path / "c.ply", make_scene("content", "torus", 500))
+    run_style_clean(scene=tmp_path / "cone.ply", out_ply=tmp_path / "s.ply", out_json=tmp_path / "s.json", params={})
+    params = {"frames": 1, "size": 32, "key_views": 1}
+    run_texture_reference(style=tmp_path / "s.ply", content=tmp_path / "c.ply", out_folder=tmp_path / "rx",
+                          params=params, progress=False, style_form=tmp_path / "s.json")
+    seg = load_npz(tmp_path / "rx" / "segments.npz")
+    sheet = read_ply(tmp_path / "s.ply")
+    assert str(seg["how"]).startswith("laid-out elements") and len(seg["segments"]) == len(sheet)
+    assert seg["segments"].max() + 1 == len(np.unique(sheet.element.numpy())) > 10
+    run_texture_reference(style=tmp_path / "s.ply", content=tmp_path / "c.ply", out_folder=tmp_path / "ry",
+                          params=params, progress=False)
+    assert not (tmp_path / "ry" / "segments.npz").exists()
