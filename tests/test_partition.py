@@ -767,6 +767,16 @@ def test_follow_thickness_shrinks_the_elements_of_thin_clusters_only():
                                                          follow_thickness=1.0))
     ratio = element_size_factors(thin) / element_size_factors(plain)
     assert float(ratio[:2].max()) > 0.8 and float(ratio[2:].max()) < 0.5  # the tube's elements smaller
+    # each cluster's base scale: s0 on the sphere, several times it on the tube (the pebbles' own width here)
+    assert torch.equal(plain.base, torch.full((4,), plain.s0, dtype=D64)) and torch.equal(thin.base[:2], plain.base[:2])
+    assert float((thin.base[2:] / thin.s0).min()) > 2
+    # the report's bound is each cluster's own: the tube's clusters at 4 s0 x 1.5 count as at the bound
+    at = Registration(**{**thin.__dict__, "s": thin.base[:, None].expand(4, 3) * 1.5})
+    assert element_size_report(at, 1.5)["clusters_at_scale_bound"] == 1.0
+    d = thin.to_npz()
+    assert torch.equal(Registration.from_npz(d).base, thin.base)
+    d.pop("base")  # written before clusters had their own base: s0 everywhere
+    assert torch.equal(Registration.from_npz(d).base, plain.base * thin.s0 / plain.s0)
 
 
 def test_outward_normals_and_style_up():

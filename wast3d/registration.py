@@ -113,7 +113,9 @@ class RegistrationConfig:
 class Registration:
     """Per cluster (K): R [K,3,3], s [K,3], t [K,3] (eq. 7), p [K,3], mu [K,3], residual_init [K],
     residual [K] (in style spacings), s0 (scalar), style_spacing (scalar), style_up [3] (the style's up
-    that the outward content normals were mapped onto, :func:`style_up`)."""
+    that the outward content normals were mapped onto, :func:`style_up`), base [K] (each cluster's base
+    scale, the centre of its scale bounds: s0, or more where ``follow_thickness`` shrinks its elements;
+    s0 everywhere when not given)."""
 
     R: torch.Tensor
     s: torch.Tensor
@@ -125,6 +127,11 @@ class Registration:
     s0: float
     style_spacing: float
     style_up: torch.Tensor
+    base: torch.Tensor | None = None
+
+    def __post_init__(self):
+        if self.base is None:
+            self.base = torch.full((len(self.s),), float(self.s0), dtype=torch.float64)
 
     def apply(self, points: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         """Eq. 7's map of content points into the style scene: S R (g - t); points [N,3], labels [N]."""
@@ -146,11 +153,11 @@ class Registration:
 
     @classmethod
     def from_npz(cls, d: dict) -> "Registration":
-        missing = sorted(set(cls.__dataclass_fields__) - set(d))
+        missing = sorted(set(cls.__dataclass_fields__) - set(d) - {"base"})  # base: s0 where not written
         if missing:
             raise ValueError(f"registration file lacks {', '.join(missing)} (written by an older wast3d?): run register again")
         return cls(**{k: (torch.from_numpy(np.asarray(d[k])) if np.asarray(d[k]).ndim else float(d[k]))
-                      for k in cls.__dataclass_fields__})
+                      for k in cls.__dataclass_fields__ if k in d})
 
 
 def thickness_factors(content: torch.Tensor, labels: torch.Tensor, K: int, width: float, cfg: "RegistrationConfig",
@@ -196,12 +203,14 @@ def element_size_factors(reg: Registration) -> torch.Tensor:
 def element_size_report(reg: Registration, scale_range: float) -> dict:
     """:func:`element_size_factors`' median and 10 / 90 % quantiles over the clusters, and the share of
     clusters with an in-plane scale axis (the two least aligned with the style's up) at ``scale_range``'s
-    bound (``s0 / range`` or ``s0 * range``)."""
+    bound (its base scale over or times the range: ``s0 / range`` or ``s0 * range`` but where
+    ``follow_thickness`` raised it)."""
     f = element_size_factors(reg)
     s = reg.s.double()[:, torch.argsort(reg.style_up.double().abs())[:2]]
+    base = reg.base.double()[:, None].expand_as(s)
     at = torch.zeros_like(s, dtype=torch.bool)
-    for b in (reg.s0 / scale_range, reg.s0 * scale_range):
-        at |= torch.isclose(s, torch.full_like(s, b), rtol=1e-6)
+    for b in (base / scale_range, base * scale_range):
+        at |= torch.isclose(s, b, rtol=1e-6)
     return {"median": float(f.median()), "p10": float(torch.quantile(f, 0.1)), "p90": float(torch.quantile(f, 0.9)),
             "clusters_at_scale_bound": float(at.any(dim=1).double().mean()),
             "units": "the elements' size on the content over the size s0 asks (1: as asked)"}
@@ -653,7 +662,8 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     else:
         R, s, p, res_final, _ = _icp(cent, labels, K, style, R, s, p, s_lo, s_hi, cfg.refine_iterations, index)
     t = mu - torch.einsum("kji,kj->ki", R, p / s)
-    reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style, up)
+    reg = Registration(R, s, t, p, mu, res0.view(K, M).mean(1) / sp_style, res_final / sp_style, s0, sp_style, up,
+                       s0k)
     log.info("registration: %d clusters x %d starts; residual %.3f -> %.3f style spacings (mean); s0 = %.4g",
              K, M, float(reg.residual_init.mean()), float(reg.residual.mean()), s0)
     return reg
