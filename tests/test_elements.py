@@ -1,5 +1,6 @@
 """Element labels (procedural styles, PLY round trip, selection/stylize/rescale) and the element metrics."""
 
+import math
 import numpy as np
 import pytest
 import torch
@@ -131,6 +132,25 @@ def test_element_whole_halves_for_cut_elements_and_falls_for_confetti():
     from dataclasses import replace
     confetti = element_whole(element_pieces(replace(s, means=means), whole_copies, [cam], tol=0.25))
     assert confetti / whole < 0.1
+
+
+def test_element_whole_of_elements_made_smaller_on_purpose_counts_them_at_full_size():
+    """A copy f times the size (follow_thickness) shows f^2 the pixels; weighted 1 / f^2 it reads whole."""
+    from dataclasses import replace
+
+    from wast3d.cameras import Camera, look_at
+    from wast3d.render import element_pieces
+
+    s = style_scene("pebbles", 6000)
+    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
+                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    copies = torch.where(s.element > 0, s.element.long(), -1)
+    whole = element_whole(element_pieces(s, copies, [cam], tol=0.25))
+    small = replace(s, means=0.5 * s.means, log_scales=s.log_scales + math.log(0.5))  # the patch half as wide
+    unweighted = element_whole(element_pieces(small, copies, [cam], tol=0.25))
+    weighted = element_whole(element_pieces(small, copies, [cam], tol=0.25, area_weight=torch.full((len(s),), 4.0)))
+    assert 0.15 < unweighted / whole < 0.35  # a quarter of the pixels
+    assert 0.8 < weighted / whole < 1.25
 
 
 def _copies(n_el=6, per=40, seed=0):

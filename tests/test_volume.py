@@ -203,3 +203,41 @@ def test_the_texture_reference_segments_a_sheet_by_its_laid_out_elements(tmp_pat
     run_texture_reference(style=tmp_path / "s.ply", content=tmp_path / "c.ply", out_folder=tmp_path / "ry",
                           params=params, progress=False)
     assert not (tmp_path / "ry" / "segments.npz").exists()
+
+
+def test_by_default_a_sheet_comes_out_in_whole_element_copies_and_a_patch_as_set():
+    """Null copies and follow_thickness are set by the style's form: on a sheet every element copy a
+    cluster keeps is its whole element (completed from 30 %, dropped below), each over its own cluster;
+    explicit values win; a patch keeps them off."""
+    from wast3d.pair import partition, stylize_partition
+    from wast3d.registration import RegistrationConfig, follow_thickness
+    from wast3d.stylize import SHEET_COPIES, StylizeConfig, resolved_copies
+
+    assert follow_thickness(RegistrationConfig(), sheet=True) == 1.0
+    assert follow_thickness(RegistrationConfig(), sheet=False) == 0.0
+    assert follow_thickness(RegistrationConfig(follow_thickness=0.0), sheet=True) == 0.0
+    on_sheet = resolved_copies(StylizeConfig(), sheet=True).copies
+    assert {k: getattr(on_sheet, k) for k in SHEET_COPIES} == SHEET_COPIES
+    assert resolved_copies(StylizeConfig(), sheet=False).copies.trim == 0.0
+    assert resolved_copies(StylizeConfig(copies={"trim": 0.2}), sheet=True).copies.trim == 0.2
+
+    sheet, _ = element_sheet(make_scene("style", "bouquet", 4000, seed=0))
+    content = make_scene("content", "torus", 1500, seed=0)
+    params = {"cluster": {"n_clusters": 6}, "register": {"landings": 1, "yaws": 2, "iterations": 4,
+                                                          "refine_iterations": 4}, "stylize": {"iterations": 2}}
+    size = torch.bincount(sheet.element.long())
+
+    def copies(sheet_flag):
+        part = partition(content, sheet, params, sheet=sheet_flag)
+        res = stylize_partition(part, content, sheet, params, sheet=sheet_flag).stylized
+        el = sheet.element.long()[res.source]
+        m = int(el.max()) + 1
+        key, n = torch.unique(res.labels.long() * m + el, return_counts=True)  # (cluster, element) copies
+        held = n.double() / size[key % m].double()
+        return held, part
+
+    held, part = copies(True)
+    thinned = bool((part.selection.log_gain != 0).any())
+    assert not thinned and bool((held == 1).all()), held[held < 1][:10]  # every copy its whole element
+    held_patch, _ = copies(False)
+    assert bool((held_patch < 1).any())  # read as a patch, the footprints cut flowers

@@ -46,6 +46,9 @@ every Gaussian of a result knows which element of the style it came from.
     Its elements cut into fragments by the clusters' edges, or overlapping so that no one shows whole,
     lower it (the guitar x trained stones' gravel with specks); a copy that stays whole and unhidden
     scores its element's full area. Whether the element reads as a dome (its shading) it does not see.
+    Where clusters make their elements smaller on purpose (``register.follow_thickness``: cluster k's
+    elements come out f_k = s0 / base_k <= 1 times the size), a piece's area counts divided by f_k^2,
+    so that a whole small element scores as a whole large one.
 
 ``segment_whole``, ``segment_intact``
     The same two measures with no label: the style's *segments* stand in for its elements, written by
@@ -133,10 +136,11 @@ def copy_codes(copies: torch.Tensor, seed: int = 0, dtype=torch.float32) -> tupl
 
 
 def piece_areas(code_rgb: torch.Tensor, element: torch.Tensor, alpha: torch.Tensor, codes: torch.Tensor,
-                tol: float, min_alpha: float = 0.5) -> np.ndarray:
+                tol: float, min_alpha: float = 0.5, weight: np.ndarray | None = None) -> np.ndarray:
     """One view of ``element_whole``: code_rgb [H, W, PIECE_DIM] (the render of :func:`copy_codes`'s colours
     on black), element [H, W] (:func:`element_pixels`), alpha [H, W], codes [C, PIECE_DIM] -> the area of
-    its piece for every pixel in a piece ([P], pixels; empty where none)."""
+    its piece for every pixel in a piece ([P], pixels; empty where none), times its copy's ``weight`` [C]
+    where given (the module docstring's size factor)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -165,7 +169,8 @@ def piece_areas(code_rgb: torch.Tensor, element: torch.Tensor, alpha: torch.Tens
     a, b = np.concatenate(a), np.concatenate(b)
     graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(H * W, H * W))
     piece = connected_components(graph, directed=False)[1][(owner >= 0).ravel()]
-    return np.bincount(piece)[piece]
+    area = np.bincount(piece)[piece]
+    return area if weight is None else area * np.asarray(weight, dtype=np.float64)[owner.ravel()[owner.ravel() >= 0]]
 
 
 def element_whole(areas: list[np.ndarray]) -> float | None:

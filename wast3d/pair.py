@@ -47,13 +47,16 @@ class PairResult:
     seconds: dict[str, float]
 
 
-def partition(content: GaussianScene, style: GaussianScene, params: dict | None = None) -> Partition:
+def partition(content: GaussianScene, style: GaussianScene, params: dict | None = None,
+              sheet: bool = False) -> Partition:
+    """``sheet``: the style is a volume's element sheet (the style stage's report says so)."""
     params = params or {}
     t, secs = time.perf_counter(), {}
     clusters = cluster_content(content, make_config(ClusterConfig, params.get("cluster"), "cluster"))
     secs["cluster"], t = time.perf_counter() - t, time.perf_counter()
     reg = register(content.means, clusters.labels, style.means,
-                   make_config(RegistrationConfig, params.get("register"), "register"), normals=clusters.normals)
+                   make_config(RegistrationConfig, params.get("register"), "register"), normals=clusters.normals,
+                   sheet=sheet)
     secs["register"], t = time.perf_counter() - t, time.perf_counter()
     sel = select_style(make_config(SelectConfig, params.get("select"), "select"), content, clusters.labels, style, reg)
     secs["select"] = time.perf_counter() - t
@@ -61,11 +64,11 @@ def partition(content: GaussianScene, style: GaussianScene, params: dict | None 
 
 
 def stylize_partition(part: Partition, content: GaussianScene, style: GaussianScene, params: dict | None = None,
-                      progress: bool = False) -> PairResult:
+                      progress: bool = False, sheet: bool = False) -> PairResult:
     params = params or {}
     t = time.perf_counter()
     res = stylize(content, part.clusters.labels, style, part.registration, part.selection,
-                  make_config(StylizeConfig, params.get("stylize"), "stylize"), progress)
+                  make_config(StylizeConfig, params.get("stylize"), "stylize"), progress, sheet=sheet)
     t1 = time.perf_counter()
     final, ratio = rescale(res.scene, res.before_means, res.labels,
                            make_config(RescaleConfig, params.get("rescale"), "rescale"))

@@ -122,8 +122,14 @@ def _labels(path: Path, n: int) -> torch.Tensor:
     return torch.from_numpy(_clusters(path, n)["labels"]).long()
 
 
+def is_sheet(style_form: Path | None) -> bool:
+    """Whether the style stage's report (``style_form``; None: a style without one, a patch) read the
+    style as a volume and laid it out as an element sheet."""
+    return style_form is not None and read_json(style_form).get("form") == "volume"
+
+
 def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, params: dict,
-                 region: Path | None = None, out_picture: Path | None = None) -> None:
+                 region: Path | None = None, out_picture: Path | None = None, style_form: Path | None = None) -> None:
     from .registration import RegistrationConfig, element_size_report, register
 
     cfg = make_config(RegistrationConfig, params, "register")
@@ -132,7 +138,7 @@ def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, p
     labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
     reg = register(content.means, labels, style.means, cfg,
                    normals=None if normals is None else torch.from_numpy(normals),
-                   diameter=_region_diameter(region) if region else None)
+                   diameter=_region_diameter(region) if region else None, sheet=is_sheet(style_form))
     save_npz(out_npz, **reg.to_npz())
     size = element_size_report(reg, cfg.scale_range)
     (log.warning if abs(math.log(size["median"])) > math.log(1.2) else log.info)(  # a fifth off: say it louder
@@ -225,11 +231,13 @@ def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Pat
         raise ValueError(f"{sel_npz}: 'log_gain' must hold {K} finite values (one per cluster)")
     selection = Selection(torch.from_numpy(sel["offsets"]), torch.from_numpy(sel["indices"]),
                           torch.from_numpy(np.asarray(gain, dtype=np.float64)))
-    sheet = style_form is not None and read_json(style_form).get("form") == "volume"
+    sheet = is_sheet(style_form)
     res = stylize(content, labels, style, reg, selection, cfg, progress, sheet=sheet)
     out, curves, secs = res.scene, res.curves, res.seconds
     write_ply(out_ply, out)
-    save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy(), source=res.source.numpy())
+    # each cluster's element size against the one scale s0 (below 1 where follow_thickness shrinks them)
+    save_npz(out_npz, labels=res.labels.numpy(), before_means=res.before_means.numpy(), source=res.source.numpy(),
+             size_factor=(float(reg.s0) / reg.base.double()).numpy())
     rows = [{"cluster": i, "iteration": j, "loss": v} for i, c in enumerate(curves) for j, v in enumerate(c)]
     with atomic_path(out_csv) as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False)
@@ -329,7 +337,7 @@ def run_texture_reference(*, style: Path, content: Path, out_folder: Path, param
             log.warning("texture reference: %s: no element length (%s); the coarse Chamfer will not be computed",
                         style_ply, e)
     info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, s0, length, up)
-    sheet = style_form is not None and read_json(style_form).get("form") == "volume"
+    sheet = is_sheet(style_form)
     if sheet and style.element is None:
         raise ValueError(f"{style_ply}: a volume's element sheet ({style_form}) without element labels")
     if sheet:  # the elements the style stage laid out, one segment each
@@ -396,6 +404,19 @@ def element_coverage(frames: torch.Tensor, reference: torch.Tensor, content, con
     return {"coverage_element": coverage_at_scale(frames[..., 3], reference[..., 3], radii)}
 
 
+def piece_weight(d, stylize_npz: Path) -> torch.Tensor | None:
+    """What a pixel of each result Gaussian's element copy counts in ``element_whole`` (:mod:`wast3d.elements`):
+    1 / f_k^2 for a Gaussian of cluster k, f the ``size_factor`` [K] the stylize stage wrote; None where
+    every f is 1 (or the file predates it)."""
+    if "size_factor" not in d:
+        return None
+    f, labels = np.asarray(d["size_factor"], dtype=np.float64), np.asarray(d["labels"])
+    if not (np.isfinite(f).all() and (f > 0).all()) or (len(labels) and int(labels.max()) >= len(f)):
+        raise ValueError(f"{stylize_npz}: 'size_factor' must hold a finite value > 0 for each of the "
+                         f"{int(labels.max(initial=-1)) + 1} clusters")
+    return None if np.allclose(f, 1.0) else torch.from_numpy(1.0 / f[labels] ** 2)
+
+
 def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, style_frames: torch.Tensor,
                       texture_reference: Path, stylize_npz: Path | None, cfg) -> dict:
     """The element metrics of one result (:mod:`wast3d.elements`): ``element_share`` and ``element_whole``
@@ -420,9 +441,10 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     blind = share_blind(style.element)
     out["element_share_ratio"] = None if blind else out["element_share"] / max(out["element_share_style"], 1e-12)
     status = f"share ratio not valid: {blind}" if blind else "share computed"
-    clusters = None
+    clusters, weight = None, None
     if stylize_npz is not None and result.element is not None:
         d = load_npz(stylize_npz, required=("labels", "before_means"))
+        weight = piece_weight(d, stylize_npz)
         if len(d["labels"]) != len(result):
             raise ValueError(f"{stylize_npz}: 'labels' has {len(d['labels'])} entries, the result {len(result)} Gaussians")
         clusters = torch.from_numpy(d["labels"])
@@ -439,7 +461,7 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
             copies = (copy_ids(result.element, clusters) if clusters is not None
                       else torch.where(result.element > 0, result.element.long(), -1))
             whole = element_whole(element_pieces(result, copies, read_cameras(result_render, len(frames)),
-                                                 cfg.piece_tol, cfg.min_alpha)) or 0.0
+                                                 cfg.piece_tol, cfg.min_alpha, weight)) or 0.0
         out["element_whole"] = whole
         out["element_whole_ratio"] = whole / out["element_whole_style"]
         status += ", whole computed"
@@ -483,7 +505,7 @@ def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style
     out["segment_intact"] = element_intact(torch.from_numpy(d["before_means"]), result.means, copies, cfg)["intact"]
     if style_whole:
         whole = element_whole(element_pieces(result, copies, read_cameras(result_render, n_frames), cfg.piece_tol,
-                                             cfg.min_alpha)) or 0.0
+                                             cfg.min_alpha, piece_weight(d, stylize_npz))) or 0.0
         out.update(segment_whole=whole, segment_whole_ratio=whole / style_whole)
     how = str(seg_npz["how"]) if "how" in seg_npz else "relief basins"
     return {**out, "segment_status": f"{int(segments.max()) + 1} segments ({how})"}

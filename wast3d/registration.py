@@ -24,11 +24,13 @@ Method: multi-start anisotropic ICP, batched over all clusters x starts at once.
   (a median 1.03-1.2x on the project's pairs, the trained weave 1.19x; 1.36x on it when it was pretrained
   to 1,500 steps, its strands sparse clumps that pulled the map to the bound, and on the fruit capture);
   ``registration.json`` reports it and the log warns beyond 1.2x.
-- Element scale that follows the content (``follow_thickness`` > 0; off by default): a cluster thinner
-  than an element is wide gets its own base scale, s0 times :func:`thickness_factors`, so that its
-  elements come out smaller and the content keeps its width there (the ant's legs: coarse Chamfer
-  -20-26 % against boulders 4-9x wider than a leg, at 3-8x the Sinkhorn stage's time;
-  studies/follow_thickness).
+- Element scale that follows the content (``follow_thickness`` > 0; by default on for a volume's
+  element sheet, off for a patch): a cluster thinner than an element is wide gets its own base scale,
+  s0 times :func:`thickness_factors`, so that its elements come out smaller and the content keeps its
+  width there. On patches it is a study (the ant's legs: coarse Chamfer -20-26 % against boulders 4-9x
+  wider than a leg, at 3-8x the Sinkhorn stage's time; studies/follow_thickness); on a sheet, whose
+  copies are whole elements (:mod:`wast3d.stylize`'s ``copies``), it keeps whole flowers from
+  thickening the legs (docs/measurements.md#styles-that-are-objects).
 - ICP converges slowly and then snaps: from 29 degrees off, 30 rounds left 1.7 spacings of residual
   and 100 rounds reached 1e-11 on a test patch, hence the round counts.
 - Starts, ``landings x yaws`` per cluster: landing points (:func:`landing_points`: by default drawn
@@ -55,7 +57,7 @@ Residuals are reported as mean nearest-neighbour distance in units of the style'
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -69,6 +71,7 @@ log = logging.getLogger(__name__)
 
 
 LANDINGS = ("area", "centre")
+SHEET_FOLLOW = 1.0  # follow_thickness on a volume's element sheet where the config leaves it null
 MAX_SHRINK = 4.0  # follow_thickness shrinks elements at most this much: 16x the style area per cluster
 THICKNESS_POINTS = 64  # points per cluster whose local thickness follow_thickness takes the median of
 
@@ -96,11 +99,13 @@ class RegistrationConfig:
                                          " s0 = style spacing / content spacing (density-matched, depends on the "
                                          "Gaussian counts)", minimum=0)
     scale_range: float = option(1.5, "the scale is bounded to [s0 / range, s0 * range]", minimum=1)
-    follow_thickness: float = option(0.0, "element scale that follows the content: where a cluster is thinner (its "
-                                          "median local thickness) than an element's width on the content over this, "
-                                          "its base scale is raised so that its elements come out that much smaller "
-                                          "(at most 4x); 0: one element size everywhere (studies/follow_thickness)",
-                                     minimum=0)
+    follow_thickness: float | None = option(None, "element scale that follows the content: where a cluster is thinner "
+                                                  "(its median local thickness) than an element's width on the content "
+                                                  "over this, its base scale is raised so that its elements come out that "
+                                                  "much smaller (at most 4x); 0: one element size everywhere; null: by "
+                                                  "the style's form, 1 on a volume's element sheet (whole flowers the "
+                                                  "legs can carry), 0 on a patch (studies/follow_thickness)",
+                                            minimum=0)
     style_up: str = option("z", "the side the style's elements stand on (outward content normals are mapped onto it): a"
                                 " world axis, as the views of the style were taken (export_views, style_clean and the "
                                 "texture reference look from +z), or auto (the skew of the heights; fooled by a trained"
@@ -572,14 +577,26 @@ def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, 
     return best[0], best[1], best[2], best_res, res_start
 
 
+def follow_thickness(cfg: RegistrationConfig, sheet: bool) -> float:
+    """``follow_thickness`` as set, or by the style's form where null (``sheet``: a volume's element sheet)."""
+    if cfg.follow_thickness is not None:
+        return float(cfg.follow_thickness)
+    return SHEET_FOLLOW if sheet else 0.0
+
+
 @torch.no_grad()
 def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
              cfg: RegistrationConfig = RegistrationConfig(), normals: torch.Tensor | None = None,
-             diameter: float | None = None) -> Registration:
+             diameter: float | None = None, sheet: bool = False) -> Registration:
     """content: [N,3] points, labels: [N] in 0..K-1, style: [M,3], normals: [N,3] the points' outward
     normals if known (stage 3 makes them) -> :class:`Registration`. With normals, a cluster's normal is
     their mean (already outward); without, its least-variance axis turned outward by
-    :func:`outward_normals`. ``diameter``: see :func:`base_scale`."""
+    :func:`outward_normals`. ``diameter``: see :func:`base_scale`; ``sheet``: the style is a volume's
+    element sheet (:func:`follow_thickness`)."""
+    follow = follow_thickness(cfg, sheet)
+    if cfg.follow_thickness is None and follow > 0:
+        log.info("registration: follow_thickness %.3g by the style's form (a volume's element sheet)", follow)
+    cfg = replace(cfg, follow_thickness=follow)
     content, style = content.double(), style.double()
     labels = labels.long()
     K = int(labels.max()) + 1 if len(labels) else 0

@@ -233,19 +233,26 @@ def read_cameras(folder: str | Path, n: int | None = None) -> list[Camera]:
 
 @torch.no_grad()
 def element_pieces(scene: GaussianScene, copies: torch.Tensor, cams: list[Camera], tol: float,
-                   min_alpha: float = 0.5) -> list[np.ndarray]:
+                   min_alpha: float = 0.5, area_weight: torch.Tensor | None = None) -> list[np.ndarray]:
     """The visible element pieces of a labelled scene (:func:`wast3d.elements.piece_areas`, per camera):
     ``copies`` [N] each Gaussian's element copy (-1: the ground); the label colours and the copies'
-    codes rendered together, one pass per view."""
+    codes rendered together, one pass per view. ``area_weight`` [N]: what a pixel of each Gaussian's
+    copy counts (one value per copy; None: 1)."""
     from .elements import copy_codes, element_pixels, label_colours, piece_areas
 
     cols, codes = copy_codes(copies, dtype=scene.dtype)
+    weight = None
+    if area_weight is not None:
+        ids, inv = torch.unique(copies, return_inverse=True)
+        w = torch.zeros(len(ids), dtype=torch.float64).scatter_(0, inv, area_weight.double())
+        weight = w[ids >= 0].numpy()
     lab = label_colours(copies + 1, scene.dtype)
     out = []
     both = torch.cat([lab, cols], 1)  # [N, 3 + elements.PIECE_DIM]
     for cam in cams:
         m = rasterize(scene, cam, colors=both)
-        out.append(piece_areas(m.rgb[..., 3:], element_pixels(m.rgb[..., :3], m.alpha), m.alpha, codes, tol, min_alpha))
+        out.append(piece_areas(m.rgb[..., 3:], element_pixels(m.rgb[..., :3], m.alpha), m.alpha, codes, tol, min_alpha,
+                               weight))
     return out
 
 

@@ -164,6 +164,8 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
         _CONTENT, _CLUSTERS, _STYLE,
         In("region", "a region's content: its JSON, with the whole content's diameter its elements are sized by",
            required=False),
+        In("style_form", "the style stage's report (JSON, style-clean): on a volume's element sheet the element "
+                         "scale follows the content by default (follow_thickness)", required=False),
         Out("npz", "rotation, scale, translation and residual per cluster (NPZ)"),
         Out("json", "residuals before and after, base scale, style spacing (JSON)", beside="npz"),
         Out("picture", "six clusters over their style neighbourhoods (PNG)", required=False),

@@ -159,23 +159,42 @@ class SmoothingConfig:
 @checked("stylize.copies")
 class CopiesConfig:
     """What happens to the part copies the selection cut at a cluster's edge (:func:`completed_selection`,
-    :func:`own_copies`); all off by default."""
+    :func:`own_copies`). Null: by the style's form (:data:`SHEET_COPIES` on a volume's element sheet, whose
+    parts are its elements: each flower copy whole, once; off on a patch)."""
 
-    trim: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster; one Gaussian where the "
-                              "parts are left out) is dropped where less than this share of it lies over the cluster's "
-                              "own content (its nearest content point, registered back, in the cluster): the "
-                              "neighbours' footprints overlap, and their copies piled on each other show no element "
-                              "whole; 0: every selected Gaussian flows", minimum=0, maximum=1)
-    complete: float = option(0.0, "a part copy (one flow part's Gaussians selected by one cluster) holding at least "
-                                  "this share of its part is completed to the whole part (the footprint cuts elements"
-                                  " at a cluster's edge: a trained boulder copy held a median third of its boulder); "
-                                  "only where parts are on, on clusters the selection did not thin, before trim; 0: "
-                                  "off", minimum=0, maximum=1)
+    trim: float | None = option(None, "a part copy (one flow part's Gaussians selected by one cluster; one Gaussian "
+                                      "where the parts are left out) is dropped where less than this share of it lies "
+                                      "over the cluster's own content (its nearest content point, registered back, in "
+                                      "the cluster): the neighbours' footprints overlap, and their copies piled on each"
+                                      " other show no element whole; 0: every selected Gaussian flows; null: 0.5 on a "
+                                      "volume's element sheet, 0 on a patch", minimum=0, maximum=1)
+    complete: float | None = option(None, "a part copy (one flow part's Gaussians selected by one cluster) holding at "
+                                          "least this share of its part is completed to the whole part (the footprint "
+                                          "cuts elements at a cluster's edge: a trained boulder copy held a median "
+                                          "third of its boulder); only where parts are on, on clusters the selection "
+                                          "did not thin, before trim; 0: off; null: 0.3 on a volume's element sheet, 0 "
+                                          "on a patch", minimum=0, maximum=1)
     complete_height: float = option(0.0, "complete only the parts whose mean height (along the style's up) ranks above "
                                          "this quantile of the parts' mean heights: the ones standing out of the "
                                          "ground, mostly elements; 0: every part", minimum=0, maximum=1)
-    drop: float = option(0.0, "a part copy holding less than this share of its part is dropped (with complete: the "
-                              "fragments left beside the completed copies); 0: off", minimum=0, maximum=1)
+    drop: float | None = option(None, "a part copy holding less than this share of its part is dropped (with complete: "
+                                      "the fragments left beside the completed copies); 0: off; null: 0.3 on a "
+                                      "volume's element sheet, 0 on a patch", minimum=0, maximum=1)
+
+
+SHEET_COPIES = {"trim": 0.5, "complete": 0.3, "drop": 0.3}  # a sheet's copies where the config leaves them null
+
+
+def resolved_copies(cfg: "StylizeConfig", sheet: bool) -> "StylizeConfig":
+    """``cfg`` with its null ``copies`` set by the style's form (``sheet``: a volume's element sheet), logged."""
+    null = [k for k in SHEET_COPIES if getattr(cfg.copies, k) is None]
+    if not null:
+        return cfg
+    values = {k: SHEET_COPIES[k] if sheet else 0.0 for k in null}
+    if sheet:
+        log.info("stylize: part copies by the style's form (a volume's element sheet: each element copy whole, once): "
+                 "%s", ", ".join(f"{k} {v:g}" for k, v in values.items()))
+    return replace(cfg, copies=replace(cfg.copies, **values))
 
 
 @dataclass
@@ -219,7 +238,8 @@ class StylizeConfig:
                                        " in)", enum=MASSES)
     parts: PartsConfig = group(PartsConfig, "the piecewise-rigid flow: parts about an element across move as one")
     smoothing: SmoothingConfig = group(SmoothingConfig, "displacement smoothing where the parts are left out")
-    copies: CopiesConfig = group(CopiesConfig, "part copies cut at a cluster's edge: trimmed, completed or dropped (off)")
+    copies: CopiesConfig = group(CopiesConfig, "part copies cut at a cluster's edge: trimmed, completed or dropped (by "
+                                                           "default on a volume's element sheet, off on a patch)")
     sinkhorn: SinkhornConfig = group(StylizeSinkhornConfig, "the debiased Sinkhorn solver (geomloss conventions: cost |x-y|^2/2, eps = blur^2)")
 
 
@@ -887,6 +907,7 @@ def stylize(content: GaussianScene, labels: torch.Tensor, style: GaussianScene, 
     (:func:`flow_parts`)."""
     offsets, indices = selection.offsets, selection.indices
     K = len(offsets) - 1
+    cfg = resolved_copies(cfg, sheet)
     cm = content.means.double()
     mapped = reg.apply(cm, labels).float()
     c_rgb = content.rgb.float()

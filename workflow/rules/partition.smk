@@ -79,6 +79,7 @@ rule register:
         clusters=results("clusters"),
         style=lambda w: style_points(w.style),
         region=lambda w: beside("scene", ".json", scene=w.content) if w.content in REGION_CONTENTS else [],
+        style_form=lambda w: [beside("style", ".json", scene=w.style)] if needs_style_clean(w.style) else [],
     output:
         npz=results("registration"),
         json=beside("registration", ".json"),
