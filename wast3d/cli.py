@@ -138,7 +138,7 @@ def cmd_run(sub):
     sub.add_argument("--reset-config", action="store_true",
                      help="rewrite OUT/config/config.yaml from the defaults even if you edited it (yours is kept as "
                           "config.yaml.bak)")
-    sub.set_defaults(snakemake_args=[])  # more Snakemake arguments: after --
+    sub.set_defaults(snakemake_args=[], torch_free=True)  # more Snakemake arguments: after --
 
     def run(a):
         import contextlib
@@ -486,17 +486,15 @@ def main(argv: list[str] | None = None) -> int:
         args.snakemake_args = [*args.snakemake_args, *extra]
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    import torch
+    if not getattr(args, "torch_free", False):  # `run` only starts Snakemake: 3 s of importing torch saved
+        import torch
 
-    torch.set_flush_denormal(True)  # denormals make CPU kernels 50-100x slower
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    from .datasets import DatasetError
-    from .ply import PlyError
-
+        torch.set_flush_denormal(True)  # denormals make CPU kernels 50-100x slower
+        if args.threads:
+            torch.set_num_threads(args.threads)
     try:
         return int(args._run(args) or 0)
-    except (PlyError, DatasetError, FileNotFoundError, ValueError) as e:
+    except (FileNotFoundError, ValueError) as e:  # PlyError and DatasetError are ValueErrors
         if not user_error(e):
             raise
         log.error("%s", e, exc_info=args.verbose)

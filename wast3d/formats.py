@@ -24,13 +24,12 @@ import numpy as np
 import torch
 
 from .gaussians import GaussianScene, rgb_to_sh_dc
-from .io_utils import atomic_path
+from .io_utils import FORMATS, atomic_path
 from .ply import PlyError, check_writable, checked, read_ply, write_compressed_ply, write_ply
 
 log = logging.getLogger(__name__)
 
 SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
-FORMATS = (".ply", ".spz", ".splat")
 
 
 def _format(path: Path) -> str:

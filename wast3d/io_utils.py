@@ -11,6 +11,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+FORMATS = (".ply", ".spz", ".splat")  # scene files by extension (wast3d.formats reads and writes them)
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:

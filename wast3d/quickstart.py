@@ -40,7 +40,7 @@ def scene_entry(path: Path, kind: str) -> dict:
         return {"source": "images", "kind": kind, "path": str(path)}
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
-    from .formats import FORMATS
+    from .io_utils import FORMATS  # the suffixes alone: wast3d.formats would import torch
 
     if path.suffix.lower() not in FORMATS:
         raise ValueError(f"{path}: expected a scene file ({', '.join(FORMATS)}) or a folder with transforms_train.json")
