@@ -228,3 +228,19 @@ def test_segment_whole_of_relief_basins_sees_cuts_and_confetti_without_labels():
     assert 0.3 < element_whole(element_pieces(s, halves, [cam], tol=0.25)) / whole < 0.65
     means = s.means[torch.randperm(len(s), generator=torch.Generator().manual_seed(0))]
     assert element_whole(element_pieces(replace(s, means=means), seg, [cam], tol=0.25)) / whole < 0.1
+
+
+def test_piece_weights_count_each_copy_at_the_texture_references_size(tmp_path):
+    import json
+
+    from wast3d.pipeline import piece_weight
+
+    (tmp_path / "render.json").write_text(json.dumps({"size_factor": 0.25}))
+    d = {"size_factor": np.array([1.0, 0.25]), "labels": np.array([0, 1, 1])}
+    w = piece_weight(d, tmp_path / "stylize.npz", tmp_path)
+    assert torch.allclose(w, torch.tensor([1 / 16, 1.0, 1.0], dtype=torch.float64))  # a full-size copy: 16x the pixels
+    assert piece_weight({"labels": d["labels"]}, tmp_path / "stylize.npz", tmp_path) is None  # an older file
+    (tmp_path / "render.json").write_text(json.dumps({"size_factor": 1.0}))
+    assert piece_weight({"size_factor": np.ones(2), "labels": d["labels"]}, tmp_path / "stylize.npz", tmp_path) is None
+    with pytest.raises(ValueError, match="stylize.npz: 'size_factor'"):
+        piece_weight({"size_factor": np.array([1.0, np.nan]), "labels": d["labels"]}, tmp_path / "stylize.npz", tmp_path)

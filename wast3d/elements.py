@@ -47,8 +47,9 @@ every Gaussian of a result knows which element of the style it came from.
     lower it (the guitar x trained stones' gravel with specks); a copy that stays whole and unhidden
     scores its element's full area. Whether the element reads as a dome (its shading) it does not see.
     Where clusters make their elements smaller on purpose (``register.follow_thickness``: cluster k's
-    elements come out f_k = s0 / base_k <= 1 times the size), a piece's area counts divided by f_k^2,
-    so that a whole small element scores as a whole large one.
+    elements come out f_k = s0 / base_k <= 1 times the size), a piece's area counts times (f_ref / f_k)^2,
+    f_ref the size the texture reference shows the style at (the clusters' median), so that a whole small
+    element scores as a whole large one.
 
 ``segment_whole``, ``segment_intact``
     The same two measures with no label: the style's *segments* stand in for its elements, written by

@@ -314,7 +314,8 @@ def run_render(*, scene: Path, reference: Path, out_folder: Path, params: dict, 
 def run_texture_reference(*, style: Path, content: Path, out_folder: Path, params: dict, progress: bool = True,
                           registration: Path | None = None, style_form: Path | None = None) -> None:
     """The style's frames at the pixel scale its elements have on renders fitted to the content
-    (:func:`~wast3d.render.texture_reference_cameras`, with the base scale s0 of ``registration``);
+    (:func:`~wast3d.render.texture_reference_cameras`, with the clusters' median base scale in
+    ``registration``: s0, or the elements' typical size where ``follow_thickness`` shrinks them);
     ``params``: the render block, and ``up``: the style scene's up (z when not given). Where the style has
     a relief, ``segments.npz`` beside the frames holds its label-free elements, which ``segment_whole``
     and ``segment_intact`` read (:mod:`wast3d.elements`): ``segments`` [M], the relief's basins
@@ -336,7 +337,10 @@ def run_texture_reference(*, style: Path, content: Path, out_folder: Path, param
         except ValueError as e:
             log.warning("texture reference: %s: no element length (%s); the coarse Chamfer will not be computed",
                         style_ply, e)
-    info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, s0, length, up)
+    # the elements' typical size on the content: s0, or smaller where follow_thickness shrinks most clusters'
+    scale = None if reg is None else float(reg.base.double().median())
+    info = render_texture_reference(style, read_ply(content), out_folder, cfg, progress, scale, length, up,
+                                    size_factor=1.0 if reg is None else float(reg.s0) / scale)
     sheet = is_sheet(style_form)
     if sheet and style.element is None:
         raise ValueError(f"{style_ply}: a volume's element sheet ({style_form}) without element labels")
@@ -404,17 +408,22 @@ def element_coverage(frames: torch.Tensor, reference: torch.Tensor, content, con
     return {"coverage_element": coverage_at_scale(frames[..., 3], reference[..., 3], radii)}
 
 
-def piece_weight(d, stylize_npz: Path) -> torch.Tensor | None:
+def piece_weight(d, stylize_npz: Path, texture_reference: Path) -> torch.Tensor | None:
     """What a pixel of each result Gaussian's element copy counts in ``element_whole`` (:mod:`wast3d.elements`):
-    1 / f_k^2 for a Gaussian of cluster k, f the ``size_factor`` [K] the stylize stage wrote; None where
-    every f is 1 (or the file predates it)."""
+    (f_ref / f_k)^2 for a Gaussian of cluster k, f the ``size_factor`` [K] the stylize stage wrote, f_ref the
+    texture reference's (its ``render.json``): a copy made smaller on purpose counts at the reference's
+    size. None where every ratio is 1 (or the stylize file predates the factors)."""
     if "size_factor" not in d:
         return None
     f, labels = np.asarray(d["size_factor"], dtype=np.float64), np.asarray(d["labels"])
     if not (np.isfinite(f).all() and (f > 0).all()) or (len(labels) and int(labels.max()) >= len(f)):
         raise ValueError(f"{stylize_npz}: 'size_factor' must hold a finite value > 0 for each of the "
                          f"{int(labels.max(initial=-1)) + 1} clusters")
-    return None if np.allclose(f, 1.0) else torch.from_numpy(1.0 / f[labels] ** 2)
+    ref = read_json(Path(texture_reference) / "render.json").get("size_factor", 1.0)
+    if not isinstance(ref, (int, float)) or not math.isfinite(ref) or ref <= 0:
+        raise ValueError(f"{texture_reference}/render.json: 'size_factor' must be a number > 0, got {ref!r}")
+    w = (ref / f) ** 2
+    return None if np.allclose(w, 1.0) else torch.from_numpy(w[labels])
 
 
 def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, style_frames: torch.Tensor,
@@ -444,7 +453,7 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     clusters, weight = None, None
     if stylize_npz is not None and result.element is not None:
         d = load_npz(stylize_npz, required=("labels", "before_means"))
-        weight = piece_weight(d, stylize_npz)
+        weight = piece_weight(d, stylize_npz, texture_reference)
         if len(d["labels"]) != len(result):
             raise ValueError(f"{stylize_npz}: 'labels' has {len(d['labels'])} entries, the result {len(result)} Gaussians")
         clusters = torch.from_numpy(d["labels"])
@@ -505,7 +514,7 @@ def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style
     out["segment_intact"] = element_intact(torch.from_numpy(d["before_means"]), result.means, copies, cfg)["intact"]
     if style_whole:
         whole = element_whole(element_pieces(result, copies, read_cameras(result_render, n_frames), cfg.piece_tol,
-                                             cfg.min_alpha, piece_weight(d, stylize_npz))) or 0.0
+                                             cfg.min_alpha, piece_weight(d, stylize_npz, texture_reference))) or 0.0
         out.update(segment_whole=whole, segment_whole_ratio=whole / style_whole)
     how = str(seg_npz["how"]) if "how" in seg_npz else "relief basins"
     return {**out, "segment_status": f"{int(segments.max()) + 1} segments ({how})"}

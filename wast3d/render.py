@@ -362,12 +362,13 @@ def texture_reference_cameras(style: GaussianScene, content: GaussianScene, cfg:
 
 def render_texture_reference(style: GaussianScene, content: GaussianScene, out_dir: str | Path, cfg: RenderConfig,
                              progress: bool = False, s0: float | None = None, element_length: float | None = None,
-                             up="z") -> dict:
-    """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`,
-    ``key_00_rgb.png`` and ``closeup_{rgb,normal}.png`` (the first frame and its close-up, as
-    :func:`render_turntable` makes them: the style at the pixel scale of the result's close-up, its
-    fair reference) and ``render.json`` (cameras, zoom, the style's element length on the content if
-    given) under ``out_dir``."""
+                             up="z", size_factor: float = 1.0) -> dict:
+    """Write ``frames/NNN.png`` (RGBA, straight alpha) of the style from :func:`texture_reference_cameras`
+    (content-to-style scale ``s0``), ``key_00_rgb.png`` and ``closeup_{rgb,normal}.png`` (the first frame
+    and its close-up, as :func:`render_turntable` makes them: the style at the pixel scale of the result's
+    close-up, its fair reference) and ``render.json`` (cameras, zoom, the style's element length on the
+    content if given, ``size_factor``: the elements' size here against the size the registration asks)
+    under ``out_dir``."""
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
@@ -383,8 +384,8 @@ def render_texture_reference(style: GaussianScene, content: GaussianScene, out_d
     m = render_maps(style, cu, cfg)
     save_png(out_dir / "closeup_rgb.png", to_uint8(m.rgb))
     save_png(out_dir / "closeup_normal.png", to_uint8(normal_image(m.normal, m.alpha)))
-    info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "s0": s0, "element_length": element_length,
-            "config": asdict(cfg), "up": up, "cameras": camera_dicts(cams + [cu])}
+    info = {"frames": len(cams), "zoom": z, "gaussians": len(style), "s0": s0, "size_factor": size_factor,
+            "element_length": element_length, "config": asdict(cfg), "up": up, "cameras": camera_dicts(cams + [cu])}
     write_json(out_dir / "render.json", info)
     return info
 
