@@ -9,7 +9,7 @@ import torch
 from wast3d.clustering import ClusterConfig, kmeans, n_clusters_for
 from wast3d.gaussians import GaussianScene, rotmat_to_quat, shortest_axis
 from wast3d.geometry import _flushing_denormals, frame_from_normal, group_diameters, kdtree, knn, local_thickness
-from wast3d.registration import (Registration, RegistrationConfig, base_scale, element_size_factors, element_size_report,
+from wast3d.registration import (FORM_DEFAULTS, Registration, RegistrationConfig, base_scale, element_size_factors, element_size_report,
                                  random_rotation, register, relief, relief_length)
 from wast3d.selection import SelectConfig, select, select_footprint, select_with, thin
 from wast3d.surface import StyleCleanConfig, SurfaceConfig, clean_style, sample_surface
@@ -730,8 +730,8 @@ def test_base_scale_rules():
     s0, how = base_scale(c, st, RegistrationConfig())
     assert how["rule"] == "element_scale"
     # one relief length of the style covers element_scale of the content's diameter
-    assert abs(how["relief_length"] / s0 / how["content_diameter"] - RegistrationConfig().element_scale) < 1e-9
-    s1, _ = base_scale(c, st, RegistrationConfig(element_scale=2 * RegistrationConfig().element_scale))
+    assert abs(how["relief_length"] / s0 / how["content_diameter"] - FORM_DEFAULTS["element_scale"][0]) < 1e-9
+    s1, _ = base_scale(c, st, RegistrationConfig(element_scale=2 * FORM_DEFAULTS["element_scale"][0]))
     assert abs(s1 / s0 - 0.5) < 1e-9  # elements twice as large on the content
     assert base_scale(c, st, RegistrationConfig(scale=3.0))[0] == 3.0
     assert base_scale(c, st, RegistrationConfig(element_scale=0))[1]["rule"].startswith("density")

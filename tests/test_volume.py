@@ -206,16 +206,18 @@ def test_the_texture_reference_segments_a_sheet_by_its_laid_out_elements(tmp_pat
 
 
 def test_by_default_a_sheet_comes_out_in_whole_element_copies_and_a_patch_as_set():
-    """Null copies and follow_thickness are set by the style's form: on a sheet every element copy a
-    cluster keeps is its whole element (completed from 30 %, dropped below), each over its own cluster;
-    explicit values win; a patch keeps them off."""
+    """Null copies, follow_thickness and element_scale are set by the style's form: on a sheet every
+    element copy a cluster keeps is its whole element (completed from 30 %, dropped below), each over its
+    own cluster, at a smaller element scale; explicit values win; a patch keeps copies and follow off."""
     from wast3d.pair import partition, stylize_partition
-    from wast3d.registration import RegistrationConfig, follow_thickness
+    from wast3d.registration import RegistrationConfig, by_form
     from wast3d.stylize import SHEET_COPIES, StylizeConfig, resolved_copies
 
-    assert follow_thickness(RegistrationConfig(), sheet=True) == 1.0
-    assert follow_thickness(RegistrationConfig(), sheet=False) == 0.0
-    assert follow_thickness(RegistrationConfig(follow_thickness=0.0), sheet=True) == 0.0
+    sheet, patch = by_form(RegistrationConfig(), sheet=True), by_form(RegistrationConfig(), sheet=False)
+    assert (sheet.follow_thickness, sheet.element_scale) == (1.0, 0.045)
+    assert (patch.follow_thickness, patch.element_scale) == (0.0, 0.062)
+    assert by_form(RegistrationConfig(follow_thickness=0.0, element_scale=0.05), sheet=True).follow_thickness == 0.0
+    assert by_form(RegistrationConfig(element_scale=0.05), sheet=True).element_scale == 0.05
     on_sheet = resolved_copies(StylizeConfig(), sheet=True).copies
     assert {k: getattr(on_sheet, k) for k in SHEET_COPIES} == SHEET_COPIES
     assert resolved_copies(StylizeConfig(), sheet=False).copies.trim == 0.0

@@ -71,7 +71,11 @@ log = logging.getLogger(__name__)
 
 
 LANDINGS = ("area", "centre")
-SHEET_FOLLOW = 1.0  # follow_thickness on a volume's element sheet where the config leaves it null
+# the options the config leaves null, by the style's form: (a patch, a volume's element sheet)
+FORM_DEFAULTS = {"follow_thickness": (0.0, 1.0),
+                 # a sheet's elements (a flower, a cone scale) stand as tall as they are wide: at a patch's 0.062
+                 # the lego and the guitar lost their coarse shape (docs/measurements.md#styles-that-are-objects)
+                 "element_scale": (0.062, 0.045)}
 MAX_SHRINK = 4.0  # follow_thickness shrinks elements at most this much: 16x the style area per cluster
 THICKNESS_POINTS = 64  # points per cluster whose local thickness follow_thickness takes the median of
 
@@ -94,10 +98,12 @@ class RegistrationConfig:
                                       "fewer per cluster); 0: every point", minimum=0)
     subsample: int = option(128, "points per cluster during the multi-start phase", minimum=1)
     scale: float = option(0.0, "content-to-style scale s0 explicitly (0: from element_scale)", minimum=0)
-    element_scale: float = option(0.062, "how large the style's elements come out: one relief length of the style "
-                                         "(about an element's width) covers this fraction of the content's diameter; 0:"
-                                         " s0 = style spacing / content spacing (density-matched, depends on the "
-                                         "Gaussian counts)", minimum=0)
+    element_scale: float | None = option(None, "how large the style's elements come out: one relief length of the "
+                                                "style (about an element's width) covers this fraction of the content's"
+                                                " diameter; 0: s0 = style spacing / content spacing (density-matched, "
+                                                "depends on the Gaussian counts); null: by the style's form, 0.062 on a "
+                                                "patch, 0.045 on a volume's element sheet (its elements stand as tall "
+                                                "as they are wide)", minimum=0)
     scale_range: float = option(1.5, "the scale is bounded to [s0 / range, s0 * range]", minimum=1)
     follow_thickness: float | None = option(None, "element scale that follows the content: where a cluster is thinner "
                                                   "(its median local thickness) than an element's width on the content "
@@ -471,6 +477,7 @@ def base_scale(content: torch.Tensor, style: torch.Tensor, cfg: RegistrationConf
     if cfg.scale > 0:
         return cfg.scale, {"rule": "scale (explicit)"}
     why = None
+    cfg = by_form(cfg, sheet=False)  # as register() resolves it where it is left null
     if cfg.element_scale > 0:
         try:
             L = relief_length(style, up=cfg.style_up)
@@ -577,11 +584,10 @@ def _icp(g: torch.Tensor, seg: torch.Tensor, B: int, style: torch.Tensor, R, s, 
     return best[0], best[1], best[2], best_res, res_start
 
 
-def follow_thickness(cfg: RegistrationConfig, sheet: bool) -> float:
-    """``follow_thickness`` as set, or by the style's form where null (``sheet``: a volume's element sheet)."""
-    if cfg.follow_thickness is not None:
-        return float(cfg.follow_thickness)
-    return SHEET_FOLLOW if sheet else 0.0
+def by_form(cfg: RegistrationConfig, sheet: bool) -> RegistrationConfig:
+    """``cfg`` with the options it leaves null (:data:`FORM_DEFAULTS`: ``follow_thickness``,
+    ``element_scale``) set by the style's form; ``sheet``: a volume's element sheet, else a patch."""
+    return replace(cfg, **{k: float(v[sheet]) for k, v in FORM_DEFAULTS.items() if getattr(cfg, k) is None})
 
 
 @torch.no_grad()
@@ -592,11 +598,13 @@ def register(content: torch.Tensor, labels: torch.Tensor, style: torch.Tensor,
     normals if known (stage 3 makes them) -> :class:`Registration`. With normals, a cluster's normal is
     their mean (already outward); without, its least-variance axis turned outward by
     :func:`outward_normals`. ``diameter``: see :func:`base_scale`; ``sheet``: the style is a volume's
-    element sheet (:func:`follow_thickness`)."""
-    follow = follow_thickness(cfg, sheet)
-    if cfg.follow_thickness is None and follow > 0:
-        log.info("registration: follow_thickness %.3g by the style's form (a volume's element sheet)", follow)
-    cfg = replace(cfg, follow_thickness=follow)
+    element sheet (:func:`by_form`)."""
+    resolved = by_form(cfg, sheet)
+    chosen = {k: getattr(resolved, k) for k in FORM_DEFAULTS if getattr(cfg, k) is None}
+    if chosen:
+        log.info("registration: %s by the style's form (%s)", ", ".join(f"{k} {v:.3g}" for k, v in chosen.items()),
+                 "a volume's element sheet" if sheet else "a patch")
+    cfg = resolved
     content, style = content.double(), style.double()
     labels = labels.long()
     K = int(labels.max()) + 1 if len(labels) else 0
