@@ -214,7 +214,7 @@ def test_by_default_a_sheet_comes_out_in_whole_element_copies_and_a_patch_as_set
     from wast3d.stylize import SHEET_COPIES, StylizeConfig, resolved_copies
 
     sheet, patch = by_form(RegistrationConfig(), sheet=True), by_form(RegistrationConfig(), sheet=False)
-    assert (sheet.follow_thickness, sheet.element_scale) == (1.0, 0.045)
+    assert (sheet.follow_thickness, sheet.element_scale) == (0.5, 0.045)
     assert (patch.follow_thickness, patch.element_scale) == (0.0, 0.062)
     assert by_form(RegistrationConfig(follow_thickness=0.0, element_scale=0.05), sheet=True).follow_thickness == 0.0
     assert by_form(RegistrationConfig(element_scale=0.05), sheet=True).element_scale == 0.05

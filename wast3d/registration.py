@@ -72,10 +72,10 @@ log = logging.getLogger(__name__)
 
 LANDINGS = ("area", "centre")
 # the options the config leaves null, by the style's form: (a patch, a volume's element sheet)
-FORM_DEFAULTS = {"follow_thickness": (0.0, 1.0),
-                 # a sheet's elements (a flower, a cone scale) stand as tall as they are wide: at a patch's 0.062
-                 # the lego and the guitar lost their coarse shape (docs/measurements.md#styles-that-are-objects)
-                 "element_scale": (0.062, 0.045)}
+# A sheet's elements (a flower, a cone scale) stand as tall as they are wide, on both sides of a thin part:
+# smaller, and at most half as wide as the content is thick, they keep the lego's and the guitar's coarse
+# shape (docs/measurements.md#styles-that-are-objects)
+FORM_DEFAULTS = {"follow_thickness": (0.0, 0.5), "element_scale": (0.062, 0.045)}
 MAX_SHRINK = 4.0  # follow_thickness shrinks elements at most this much: 16x the style area per cluster
 THICKNESS_POINTS = 64  # points per cluster whose local thickness follow_thickness takes the median of
 
@@ -109,7 +109,7 @@ class RegistrationConfig:
                                                   "(its median local thickness) than an element's width on the content "
                                                   "over this, its base scale is raised so that its elements come out that "
                                                   "much smaller (at most 4x); 0: one element size everywhere; null: by "
-                                                  "the style's form, 1 on a volume's element sheet (whole flowers the "
+                                                  "the style's form, 0.5 on a volume's element sheet (whole flowers the "
                                                   "legs can carry), 0 on a patch (studies/follow_thickness)",
                                             minimum=0)
     style_up: str = option("z", "the side the style's elements stand on (outward content normals are mapped onto it): a"
