@@ -70,13 +70,19 @@ def test_transfer_takes_the_nearest_source_label():
     assert torch.equal(transfer_elements(jitter, s.means, s.element), s.element)
 
 
-def test_element_share_of_rendered_label_channel():
+def _camera_above():
+    """A 128 px camera 3 units above the origin, looking down -z."""
     from wast3d.cameras import Camera, look_at
+
+    return Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
+                  fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+
+
+def test_element_share_of_rendered_label_channel():
     from wast3d.rasterizer import rasterize
 
     s = style_scene("pebbles", 6000)
-    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
-                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    cam = _camera_above()
     def share(scene):
         m = rasterize(scene, cam, colors=label_colours(scene.element))
         return element_share(element_pixels(m.rgb, m.alpha)[None], m.alpha[None])
@@ -110,12 +116,10 @@ def test_piece_areas_count_connected_pixels_of_one_copy_and_leave_blends_out():
 
 
 def test_element_whole_halves_for_cut_elements_and_falls_for_confetti():
-    from wast3d.cameras import Camera, look_at
     from wast3d.render import element_pieces
 
     s = style_scene("pebbles", 6000)
-    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
-                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    cam = _camera_above()
     whole_copies = torch.where(s.element > 0, s.element.long(), -1)
     whole = element_whole(element_pieces(s, whole_copies, [cam], tol=0.25))
     # every pebble cut in two across x through its centre: pieces half as large
@@ -138,12 +142,10 @@ def test_element_whole_of_elements_made_smaller_on_purpose_counts_them_at_full_s
     """A copy f times the size (follow_thickness) shows f^2 the pixels; weighted 1 / f^2 it reads whole."""
     from dataclasses import replace
 
-    from wast3d.cameras import Camera, look_at
     from wast3d.render import element_pieces
 
     s = style_scene("pebbles", 6000)
-    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
-                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    cam = _camera_above()
     copies = torch.where(s.element > 0, s.element.long(), -1)
     whole = element_whole(element_pieces(s, copies, [cam], tol=0.25))
     small = replace(s, means=0.5 * s.means, log_scales=s.log_scales + math.log(0.5))  # the patch half as wide
@@ -212,13 +214,11 @@ def test_segment_whole_of_relief_basins_sees_cuts_and_confetti_without_labels():
     on the known controls (halves ~0.5 of whole, confetti ~0)."""
     from dataclasses import replace
 
-    from wast3d.cameras import Camera, look_at
     from wast3d.registration import relief_basins, relief_length
     from wast3d.render import element_pieces
 
     s = style_scene("pebbles", 6000)
-    cam = Camera(look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0])),
-                 fx=100.0, fy=100.0, cx=64.0, cy=64.0, width=128, height=128)
+    cam = _camera_above()
     seg = relief_basins(s.means, "z", relief_length(s.means))
     whole = element_whole(element_pieces(s, seg, [cam], tol=0.25))
     labelled = element_whole(element_pieces(s, torch.where(s.element > 0, s.element.long(), -1), [cam], tol=0.25))
