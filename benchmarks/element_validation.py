@@ -50,6 +50,7 @@ def main(argv=None) -> None:
     from wast3d.elements import ElementConfig, copy_ids, element_intact, element_whole
     from wast3d.render import element_pieces, read_cameras
     from wast3d.io_utils import load_npz
+    from wast3d.pipeline import piece_weight
     from wast3d.ply import read_ply
     from wast3d.stages import artifact
 
@@ -79,6 +80,9 @@ def main(argv=None) -> None:
         res = read_ply(artifact("final", **ours))
         npz = load_npz(artifact("stylize_npz", **ours))
         clusters = torch.from_numpy(npz["labels"])
+        # each copy's pixels counted at the texture reference's element size, as the evaluate stage counts ours
+        weight = piece_weight(npz, Path(artifact("stylize_npz", **ours)),
+                              Path(artifact("texture_reference", a.results, content=content, style=style)))
         before = torch.from_numpy(npz["before_means"])
         g = torch.Generator().manual_seed(0)
         shuffled = res.means.clone()
@@ -92,7 +96,7 @@ def main(argv=None) -> None:
         render_dir = Path(artifact("render_pair", a.results, content=content, style=style, method="default"))
         cams = read_cameras(render_dir, json.loads((render_dir / "render.json").read_text())["frames"])
         whole = element_whole(element_pieces(replace(res, means=shuffled), copy_ids(res.element, clusters), cams,
-                                             cfg.piece_tol, cfg.min_alpha)) or 0.0
+                                             cfg.piece_tol, cfg.min_alpha, weight)) or 0.0
         row = {"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
                "element_share_ratio": None, "element_intact": conf["intact"],
                "element_whole_ratio": whole / whole_style, "coverage": None}
@@ -104,7 +108,7 @@ def main(argv=None) -> None:
         row = {"pair": pair, "control": "chips (negative)", "method": "default, each copy flattened to 1/5 height",
                "element_intact": element_intact(before, chips, copy_ids(res.element, clusters), cfg)["intact"],
                "element_whole_ratio": (element_whole(element_pieces(replace(res, means=chips), copy_ids(res.element, clusters),
-                                                                    cams, cfg.piece_tol, cfg.min_alpha)) or 0.0) / whole_style}
+                                                                    cams, cfg.piece_tol, cfg.min_alpha, weight)) or 0.0) / whole_style}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=chips), rows, a.seeds, "chips"))
         row.update(segment_scores(a.results, content, style, replace(res, means=chips), before, clusters, cams))
@@ -135,6 +139,7 @@ def segment_scores(results: Path, content: str, style: str, scene, before, clust
     the evaluate stage's own function on the pair's texture reference and the default run's stylize npz."""
     from wast3d.elements import ElementConfig, element_intact, element_whole, segment_copies
     from wast3d.io_utils import load_npz
+    from wast3d.pipeline import piece_weight
     from wast3d.render import element_pieces
     from wast3d.stages import artifact
 
@@ -144,9 +149,11 @@ def segment_scores(results: Path, content: str, style: str, scene, before, clust
         return {}
     cfg = ElementConfig()
     seg = torch.from_numpy(load_npz(ref / "segments.npz")["segments"])
-    npz = load_npz(artifact("stylize_npz", results, content=content, style=style, experiment="default"))
+    stylize_npz = Path(artifact("stylize_npz", results, content=content, style=style, experiment="default"))
+    npz = load_npz(stylize_npz)
     copies = segment_copies(seg, torch.from_numpy(npz["source"]), clusters)
-    whole = element_whole(element_pieces(scene, copies, cams, cfg.piece_tol, cfg.min_alpha)) or 0.0
+    whole = element_whole(element_pieces(scene, copies, cams, cfg.piece_tol, cfg.min_alpha,
+                                         piece_weight(npz, stylize_npz, ref))) or 0.0
     return {"segment_intact": element_intact(before, scene.means, copies, cfg)["intact"],
             "segment_whole_ratio": whole / own["segment_whole_style"]}
 
