@@ -128,6 +128,24 @@ def test_rules_pass_every_default_so_a_changed_default_reruns_the_stage():
         resolved_params("stylize", {"features": "bogus"})
 
 
+def test_the_values_set_by_the_style_form_are_part_of_the_parameters(monkeypatch):
+    """Options left null take their value from the style's form when the stage runs; the rules pass the
+    code's form values too (``by_form``), so that changing them re-runs the stage, and the stage itself
+    reads the parameters without them."""
+    import wast3d.registration as registration
+    from wast3d.pipeline import without_by_form
+    from wast3d.stages import resolved_params, stage_configs
+    from wast3d.stylize import SHEET_COPIES
+
+    reg = resolved_params("register", {})
+    assert reg["element_scale"] is None and reg["by_form"]["element_scale"] == list(registration.FORM_DEFAULTS["element_scale"])
+    assert resolved_params("stylize", {})["by_form"] == SHEET_COPIES
+    assert stage_configs("register", reg)[None].element_scale is None  # the dataclass never sees the key
+    assert "by_form" not in without_by_form(reg) and "by_form" not in resolved_params("cluster", {})
+    monkeypatch.setitem(registration.FORM_DEFAULTS, "element_scale", (0.062, 0.04))
+    assert resolved_params("register", {}) != reg
+
+
 def test_resolved_params_are_remembered_per_block_and_package(tmp_path, monkeypatch):
     """resolved_params_cached: the same parameters as resolved_params, read back from its file without
     resolving again (nothing imported); another package fingerprint or block resolves anew; a bad block

@@ -58,7 +58,8 @@ class Stage:
     """A stage: ``command`` (``wast3d <command>``), ``run`` (the function in :mod:`wast3d.pipeline`),
     ``ports`` (its files), ``config`` (``module:Class`` of the dataclass that checks its parameters, or
     one per block where they are several, as evaluate's), ``block`` (their place in the workflow's
-    config), ``progress`` (it takes ``--no-progress``), ``passthrough`` (keys outside the dataclass)."""
+    config), ``progress`` (it takes ``--no-progress``), ``passthrough`` (keys outside the dataclass),
+    ``by_form`` (``module:NAME`` of the values its options left null take by the style's form)."""
 
     command: str
     help: str
@@ -68,6 +69,9 @@ class Stage:
     block: str | None = None  # where its parameters sit in the workflow's config (``*``: any name)
     progress: bool = False
     passthrough: tuple[str, ...] = ()  # parameter keys the pipeline function takes itself, not the dataclass
+    # the values its null options take by the style's form: resolved_params adds them (key ``by_form``), so
+    # that a change of them in the code re-runs the stage as a changed default does
+    by_form: str | None = None
 
     def __post_init__(self):
         names = [p.name for p in self.ports]
@@ -169,7 +173,7 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
         Out("npz", "rotation, scale, translation and residual per cluster (NPZ)"),
         Out("json", "residuals before and after, base scale, style spacing (JSON)", beside="npz"),
         Out("picture", "six clusters over their style neighbourhoods (PNG)", required=False),
-    ), "wast3d.registration:RegistrationConfig", "partitions.*.register"),
+    ), "wast3d.registration:RegistrationConfig", "partitions.*.register", by_form="wast3d.registration:FORM_DEFAULTS"),
     Stage("select", "stage 4b: style Gaussians of each cluster (eq. 8, or the footprint)", "run_select", (
         _CONTENT, _CLUSTERS, _STYLE, _REGISTRATION,
         Out("npz", "style indices per cluster as offsets + indices (NPZ)"),
@@ -185,7 +189,7 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
         Out("csv", "loss per cluster and step (CSV)"),
         Out("json", "time, device, losses first and last, the config (JSON)", beside="csv"),
         Out("png", "the loss curves (PNG)", beside="csv"),
-    ), "wast3d.stylize:StylizeConfig", "experiments.*.stylize", progress=True),
+    ), "wast3d.stylize:StylizeConfig", "experiments.*.stylize", progress=True, by_form="wast3d.stylize:SHEET_COPIES"),
     Stage("rescale", "stage 6: readjust scales from the change of mean nearest-neighbour distance", "run_rescale", (
         In("stylized", "the stylized scene (PLY, stage 5)"),
         In("stylize_npz", "its clusters and positions before the flow (NPZ, stage 5)"),
@@ -271,7 +275,7 @@ def stage_configs(command: str, params: dict | None) -> dict:
     from wast3d.options import make_config  # absolute: the workflow loads this module by path
 
     st = STAGES[command]
-    params = {k: v for k, v in (params or {}).items() if k not in st.passthrough}
+    params = {k: v for k, v in (params or {}).items() if k not in st.passthrough and k != "by_form"}
     if not isinstance(st.config, dict):
         return {None: make_config(config_class(st.config), params, command)}
     unknown = sorted(set(params) - set(st.config))
@@ -284,8 +288,10 @@ def resolved_params(command: str, params: dict | None) -> dict:
     """The parameters stage ``command`` runs with: ``params`` with every default of its config
     dataclass(es) filled in (:func:`stage_configs`). The rules pass these, so that a changed default
     changes a stage's parameters and Snakemake re-runs it (and what depends on it) instead of keeping
-    a result made under the old default."""
+    a result made under the old default; with them, under ``by_form``, the values its null options take
+    by the style's form (:attr:`Stage.by_form`)."""
     import dataclasses
+    import json
 
     params = dict(params or {})
     if STAGES[command].config is None:
@@ -296,6 +302,8 @@ def resolved_params(command: str, params: dict | None) -> dict:
             out.update(dataclasses.asdict(cfg))
         else:
             out[key] = dataclasses.asdict(cfg)
+    if STAGES[command].by_form:
+        out["by_form"] = json.loads(json.dumps(config_class(STAGES[command].by_form)))  # tuples as lists
     return out
 
 
