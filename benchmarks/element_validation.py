@@ -78,11 +78,12 @@ def main(argv=None) -> None:
                          "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1")})
         ours = dict(results=a.results, content=content, style=style, experiment="default")
         res = read_ply(artifact("final", **ours))
-        npz = load_npz(artifact("stylize_npz", **ours))
+        stylize_npz = Path(artifact("stylize_npz", **ours))
+        ref_dir = Path(artifact("texture_reference", a.results, content=content, style=style))
+        npz = load_npz(stylize_npz)
         clusters = torch.from_numpy(npz["labels"])
         # each copy's pixels counted at the texture reference's element size, as the evaluate stage counts ours
-        weight = piece_weight(npz, Path(artifact("stylize_npz", **ours)),
-                              Path(artifact("texture_reference", a.results, content=content, style=style)))
+        weight = piece_weight(npz, stylize_npz, ref_dir)
         before = torch.from_numpy(npz["before_means"])
         g = torch.Generator().manual_seed(0)
         shuffled = res.means.clone()
@@ -114,7 +115,6 @@ def main(argv=None) -> None:
         row.update(segment_scores(a.results, content, style, replace(res, means=chips), before, clusters, cams))
         rows.append(row)
         sty = read_ply(own["style"])
-        ref_dir = Path(artifact("texture_reference", a.results, content=content, style=style))
         ref_cams = read_cameras(ref_dir, json.loads((ref_dir / "render.json").read_text())["frames"])
         for axes, role in ((1, "style, elements cut in two (known ~0.5)"), (2, "style, elements cut in four (~0.25)")):
             cut = cut_elements(sty.means, sty.element, axes)

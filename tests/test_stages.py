@@ -133,15 +133,14 @@ def test_the_values_set_by_the_style_form_are_part_of_the_parameters(monkeypatch
     code's form values too (``by_form``), so that changing them re-runs the stage, and the stage itself
     reads the parameters without them."""
     import wast3d.registration as registration
-    from wast3d.pipeline import without_by_form
-    from wast3d.stages import resolved_params, stage_configs
+    from wast3d.stages import resolved_params, run_params, stage_configs
     from wast3d.stylize import SHEET_COPIES
 
     reg = resolved_params("register", {})
     assert reg["element_scale"] is None and reg["by_form"]["element_scale"] == list(registration.FORM_DEFAULTS["element_scale"])
     assert resolved_params("stylize", {})["by_form"] == SHEET_COPIES
     assert stage_configs("register", reg)[None].element_scale is None  # the dataclass never sees the key
-    assert "by_form" not in without_by_form(reg) and "by_form" not in resolved_params("cluster", {})
+    assert "by_form" not in run_params(reg) and "by_form" not in resolved_params("cluster", {})
     monkeypatch.setitem(registration.FORM_DEFAULTS, "element_scale", (0.062, 0.04))
     assert resolved_params("register", {}) != reg
 

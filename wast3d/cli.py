@@ -14,7 +14,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from .stages import STAGES
+from .stages import STAGES, run_params
 
 log = logging.getLogger("wast3d")
 
@@ -351,7 +351,7 @@ def stage_command(st) -> None:
             kw = {p.keyword: getattr(a, p.keyword) for p in st.ports if p.beside is None}
             if st.progress:
                 kw["progress"] = not a.no_progress
-            getattr(pipeline, st.run)(**kw, params=_load_params(a.params))
+            getattr(pipeline, st.run)(**kw, params=run_params(_load_params(a.params)))
 
         return run
 

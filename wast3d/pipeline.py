@@ -122,12 +122,6 @@ def _labels(path: Path, n: int) -> torch.Tensor:
     return torch.from_numpy(_clusters(path, n)["labels"]).long()
 
 
-def without_by_form(params: dict) -> dict:
-    """A stage's parameters less ``by_form`` (:attr:`wast3d.stages.Stage.by_form`: the form values the
-    code holds, passed by the workflow so that a change of them re-runs the stage; the stage reads its own)."""
-    return {k: v for k, v in params.items() if k != "by_form"}
-
-
 def is_sheet(style_form: Path | None) -> bool:
     """Whether the style stage's report (``style_form``; None: a style without one, a patch) read the
     style as a volume and laid it out as an element sheet."""
@@ -138,7 +132,7 @@ def run_register(*, content: Path, clusters: Path, style: Path, out_npz: Path, p
                  region: Path | None = None, out_picture: Path | None = None, style_form: Path | None = None) -> None:
     from .registration import RegistrationConfig, element_size_report, register
 
-    cfg = make_config(RegistrationConfig, without_by_form(params), "register")
+    cfg = make_config(RegistrationConfig, params, "register")
     style_path, content, style = style, read_ply(content), read_ply(style)
     cl = _clusters(clusters, len(content))
     labels, normals = torch.from_numpy(cl["labels"]).long(), cl.get("normals")
@@ -223,7 +217,7 @@ def run_stylize(*, content: Path, clusters: Path, style: Path, registration: Pat
     from .selection import Selection
     from .stylize import StylizeConfig, stylize
 
-    cfg = make_config(StylizeConfig, without_by_form(params), "stylize")
+    cfg = make_config(StylizeConfig, params, "stylize")
     content, style = read_ply(content), read_ply(style)
     labels = _labels(clusters, len(content))
     reg = load_registration(registration)

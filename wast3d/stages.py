@@ -268,6 +268,12 @@ def config_class(spec: str):
     return getattr(importlib.import_module(module), name)
 
 
+def run_params(params: dict) -> dict:
+    """A stage's parameters as its pipeline function takes them: less ``by_form`` (:attr:`Stage.by_form`,
+    there only so that the rules re-run the stage when the code's form values change)."""
+    return {k: v for k, v in params.items() if k != "by_form"}
+
+
 def stage_configs(command: str, params: dict | None) -> dict:
     """The configs stage ``command`` runs with, built from ``params`` by its dataclass(es) (an unknown
     key or block, or a bad value, is a ValueError naming it): ``{None: config}`` for a stage of one
@@ -275,7 +281,7 @@ def stage_configs(command: str, params: dict | None) -> dict:
     from wast3d.options import make_config  # absolute: the workflow loads this module by path
 
     st = STAGES[command]
-    params = {k: v for k, v in (params or {}).items() if k not in st.passthrough and k != "by_form"}
+    params = {k: v for k, v in run_params(params or {}).items() if k not in st.passthrough}
     if not isinstance(st.config, dict):
         return {None: make_config(config_class(st.config), params, command)}
     unknown = sorted(set(params) - set(st.config))
