@@ -13,6 +13,9 @@
   least-variance axis, in place (what a content thinner than an element makes of pebbles): intact
   must fall, and a style metric that sees whole elements must put it farther from the style.
 
+Every control is also scored by the label-free whole-element metrics (element_colour_w1, element_thickness_w1,
+wast3d.metrics), with the same verdict over their spread across metric seeds on ours (``--seeds``).
+
 Every control is also scored label-free: ``segment_intact`` and ``segment_whole_ratio``, with the
 style's relief basins (the texture reference's segments.npz) for elements (wast3d.elements); the
 known answers hold for them where they hold for the labelled pair.
@@ -75,7 +78,8 @@ def main(argv=None) -> None:
                          "element_intact": m.get("element_intact"), "element_whole_ratio": m.get("element_whole_ratio"),
                          "segment_intact": m.get("segment_intact"), "segment_whole_ratio": m.get("segment_whole_ratio"),
                          "coverage": m.get("coverage"),
-                         "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1")})
+                         "texture_swd": m.get("texture_swd"), "relief_w1": m.get("relief_w1"),
+                         **{k: m.get(k) for k in WHOLE}})
         ours = dict(results=a.results, content=content, style=style, experiment="default")
         res = read_ply(artifact("final", **ours))
         stylize_npz = Path(artifact("stylize_npz", **ours))
@@ -103,6 +107,7 @@ def main(argv=None) -> None:
                "element_whole_ratio": whole / whole_style, "coverage": None}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
+        row.update(whole_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
         row.update(segment_scores(a.results, content, style, replace(res, means=shuffled), before, clusters, cams))
         rows.append(row)
         chips = flattened(res.means, copy_ids(res.element, clusters))
@@ -112,6 +117,7 @@ def main(argv=None) -> None:
                                                                     cams, cfg.piece_tol, cfg.min_alpha, weight)) or 0.0) / whole_style}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=chips), rows, a.seeds, "chips"))
+        row.update(whole_controls(a.results, pair, replace(res, means=chips), rows, a.seeds, "chips"))
         row.update(segment_scores(a.results, content, style, replace(res, means=chips), before, clusters, cams))
         rows.append(row)
         sty = read_ply(own["style"])
@@ -188,6 +194,43 @@ def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch
     return out
 
 
+WHOLE = ("element_colour_w1", "element_thickness_w1")
+
+
+def whole_controls(results: Path, pair: str, scene, rows: list[dict], seeds: int, name: str = "confetti") -> dict:
+    """element_colour_w1 and element_thickness_w1 of a control ``scene`` by the evaluate stage's own function
+    (the pair's texture reference, ours' metrics settings), their spread over ``seeds`` metric seeds on ours,
+    and each one's verdict (module docstring)."""
+    import statistics
+
+    from wast3d.metrics import MetricsConfig
+    from wast3d.pipeline import evaluate_whole_elements
+    from wast3d.ply import read_ply
+    from wast3d.stages import artifact
+
+    names = dict(zip(("content", "style"), pair.split("__")))
+    ours = json.loads(Path(artifact("eval", results, **names, method="default")).read_text())
+    ref = Path(artifact("texture_reference", results, **names))
+    mcfg = MetricsConfig(**ours["config"]["metrics"])
+    style, result = read_ply(ours["style"]), read_ply(ours["result"])
+    control = evaluate_whole_elements(scene, style, ref, mcfg)
+    own = [evaluate_whole_elements(result, style, ref, replace(mcfg, seed=k)) for k in range(seeds)]
+    collage = next((r for r in rows if r["pair"] == pair and r["method"] == "selected"), {})
+    out = {}
+    for key in WHOLE:
+        spread = statistics.stdev(o[key] for o in own) if seeds > 1 and control[key] is not None else float("nan")
+        out.update({key: control[key], f"{key}_spread": spread,
+                    f"{key}_verdict": verdict(collage.get(key), control[key], spread, name)})
+    return out
+
+
+def verdict(pos, neg, spread, name: str) -> str:
+    """A metric sees the control if it puts it farther from the style than the collage by >= 10x its spread."""
+    if pos is None or neg is None:
+        return "no collage to compare"
+    return "valid" if neg - pos >= 10 * spread else f"invalid: {name} - collage = {neg - pos:.3g} < 10 x spread"
+
+
 def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds: int, name: str = "confetti") -> dict:
     """texture_swd and relief_w1 of the confetti scene (rendered as the pair's result was), the spread of
     texture_swd over ``seeds`` on ours' frames, and each metric's verdict (module docstring)."""
@@ -224,15 +267,9 @@ def texture_controls(results: Path, pair: str, confetti, rows: list[dict], seeds
     spread = statistics.stdev(swds) if seeds > 1 else float("nan")
     relief_spread = statistics.stdev(reliefs) if seeds > 1 else float("nan")
     collage = next((r for r in rows if r["pair"] == pair and r["method"] == "selected"), {})
-
-    def verdict(pos, neg, spread):
-        if pos is None or neg is None:
-            return "no collage to compare"
-        return "valid" if neg - pos >= 10 * spread else f"invalid: {name} - collage = {neg - pos:.3g} < 10 x spread"
-
     return {"texture_swd": tex, "relief_w1": relief, "texture_swd_spread": spread, "relief_w1_spread": relief_spread,
-            "texture_swd_verdict": verdict(collage.get("texture_swd"), tex, spread),
-            "relief_w1_verdict": verdict(collage.get("relief_w1"), relief, relief_spread)}
+            "texture_swd_verdict": verdict(collage.get("texture_swd"), tex, spread, name),
+            "relief_w1_verdict": verdict(collage.get("relief_w1"), relief, relief_spread, name)}
 
 
 if __name__ == "__main__":

@@ -550,6 +550,48 @@ def test_relief_w1_zero_for_identical_and_orders_floor_below_a_flat_sheet():
     assert 0 < 5 * floor < negative, (floor, negative)
 
 
+def test_whole_element_metrics_see_torn_and_flattened_elements(tmp_path):
+    """element_colour_w1 sees the elements torn apart (confetti), element_thickness_w1 the elements
+    flattened into chips, each at >= 5x the other seed's sheet of the same style (the floor)."""
+    from dataclasses import replace
+
+    from wast3d.metrics import element_metrics
+    from wast3d.pipeline import evaluate_whole_elements
+    from wast3d.volume import element_sheet
+
+    style, _ = element_sheet(make_scene("style", "bouquet", 6000, seed=0))
+    other, _ = element_sheet(make_scene("style", "bouquet", 6000, seed=1), seed=1)
+    el = style.element.long()
+    n_e = int(torch.bincount(el)[torch.bincount(el) > 0].median())
+    confetti = replace(style, means=style.means[torch.randperm(len(style), generator=torch.Generator().manual_seed(0))])
+    chips = style.means.clone()
+    for j in el.unique():  # each element pressed to a fifth of its height along its least-variance axis
+        i = (el == j).nonzero().squeeze(1)
+        p = style.means[i].double() - style.means[i].double().mean(0)
+        n = torch.linalg.eigh(p.T @ p)[1][:, 0]
+        chips[i] = (style.means[i].double() - 0.8 * (p @ n)[:, None] * n).float()
+    cfg = MetricsConfig()
+    score = {name: element_metrics(sc, style, n_e, cfg) for name, sc in
+             (("same", style), ("floor", other), ("confetti", confetti), ("chips", replace(style, means=chips)))}
+    assert score["same"]["element_colour_w1"] == 0 and score["same"]["element_thickness_w1"] == 0
+    floor = score["floor"]
+    assert 0 < 5 * floor["element_colour_w1"] < score["confetti"]["element_colour_w1"], score
+    assert 0 < 5 * floor["element_thickness_w1"] < score["chips"]["element_thickness_w1"], score
+    # the evaluate stage reads the element size from the texture reference's segments, and says when it has none
+    missing = evaluate_whole_elements(other, style, tmp_path, cfg)
+    assert missing["element_colour_w1"] is None and "segments.npz does not exist" in missing["whole_status"]
+    from wast3d.io_utils import save_npz
+
+    save_npz(tmp_path / "segments.npz", segments=(el - 1).numpy())
+    got = evaluate_whole_elements(other, style, tmp_path, cfg)
+    assert got["element_size_gaussians"] == n_e and got["element_colour_w1"] == floor["element_colour_w1"]
+    save_npz(tmp_path / "segments.npz", segments=(el - 1).numpy()[:10])
+    with pytest.raises(ValueError, match="segments.npz: 'segments' has 10 entries"):
+        evaluate_whole_elements(other, style, tmp_path, cfg)
+    with pytest.raises(ValueError, match="element size must be >= 1"):
+        element_metrics(other, style, 0, cfg)
+
+
 def test_texture_swd_zero_for_identical_sees_a_flat_image_and_ignores_silhouettes():
     from wast3d.image_metrics import TextureConfig, texture_swd
 

@@ -250,6 +250,7 @@ def test_whole_dag_artifacts(tiny_run):
     assert (r / "render/texture_reference/blob__peb/segments.npz").exists()
     assert (t1.segment_whole_ratio[kept] == 0).all() and (t1.segment_whole_ratio[~kept] > 0).all()
     assert t1.segment_intact[kept].isna().all() and t1.segment_intact[~kept].between(0, 1).all()
+    assert t1.element_colour_w1.notna().all() and t1.element_thickness_w1.notna().all()  # in Table 1, label-free
     assert (t1.colour_sinkhorn[t1.run == "colour_ot"] < t1.colour_sinkhorn[t1.run == "input"].iloc[0]).all()
     assert np.isfinite(t1.time_s[t1.run != "input"]).all() and (t1.peak_mem_mb[t1.run != "input"] > 0).all()
     assert "not computed" not in (r / "tables/table1.md").read_text()

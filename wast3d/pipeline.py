@@ -477,6 +477,25 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     return {**out, "element_status": status}
 
 
+def evaluate_whole_elements(result, style, texture_reference: Path, cfg) -> dict:
+    """``element_colour_w1`` and ``element_thickness_w1`` (:func:`wast3d.metrics.element_metrics`) at the
+    style's element size: the median Gaussians per segment of ``texture_reference``/segments.npz."""
+    from .metrics import element_metrics
+
+    seg_file = Path(texture_reference) / "segments.npz"
+    if not seg_file.exists():
+        return {"element_colour_w1": None, "element_thickness_w1": None,
+                "whole_status": f"not computed: {seg_file} does not exist (no element size: a texture reference "
+                                "without a registration, or a style without relief)"}
+    segments = load_npz(seg_file, required=("segments",))["segments"]
+    if len(segments) != len(style):
+        raise ValueError(f"{seg_file}: 'segments' has {len(segments)} entries, the style {len(style)} Gaussians")
+    counts = np.bincount(np.asarray(segments, dtype=np.int64))
+    n_e = int(np.median(counts[counts > 0]))
+    return {**element_metrics(result, style, n_e, cfg),
+            "whole_status": f"computed at {n_e} Gaussians per element (the median of {seg_file})"}
+
+
 def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style: int, texture_reference: Path,
                       stylize_npz: Path | None, cfg) -> dict:
     """The label-free element metrics of one result (``segment_whole``, ``segment_intact``,
@@ -557,6 +576,7 @@ def run_evaluate(*, result: Path, content: Path, style: Path, result_render: Pat
                                  ecfg))
     out.update(evaluate_segments(result, style, len(frames), result_render, len(texture_frames), texture_reference,
                                  stylize_npz, ecfg))
+    out.update(evaluate_whole_elements(result, style, texture_reference, mcfg))
     try:
         tex = texture_levels(frames, texture_frames, tcfg)
         out["texture_swd"] = tex["texture_swd"]
