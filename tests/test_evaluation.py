@@ -13,7 +13,7 @@ from wast3d.cameras import Camera, look_at
 from wast3d.clip_eval import (ClipConfig, ClipUnavailable, CropConfig, clip_similarity, embed, load_clip,
                               random_crops)
 from wast3d.gaussians import GaussianScene, quat_multiply
-from wast3d.metrics import (MetricsConfig, chamfer, content_chamfer, principal_frames, style_metrics,
+from wast3d.metrics import (MetricsConfig, chamfer, content_chamfer, element_metrics, principal_frames, style_metrics,
                             weights_free_metrics)
 from wast3d.procedural import make_scene
 from wast3d.geometry import knn
@@ -476,6 +476,12 @@ def test_metrics_on_degenerate_inputs_are_finite():
     for a, b in ((dup, line), (line, dup), (few, line), (dup, dup)):
         m = weights_free_metrics(a, b.means, b, SMALL)
         assert all(math.isfinite(v) for v in m.values()), m
+        for n_e in (1, 40, 10_000):  # one Gaussian an element, and elements larger than either scene
+            w = element_metrics(a, b, n_e, SMALL)
+            assert all(v is None or math.isfinite(v) for v in w.values()), w
+    one_colour = GaussianScene.from_activated(line.means, line.scales, line.quats, line.opacities,
+                                              torch.full((n, 3), 0.4))  # tau 0: every neighbour of the same colour
+    assert math.isfinite(element_metrics(one_colour, one_colour, 40, SMALL)["element_thickness_w1"])
     with pytest.raises(ValueError, match="at least 2 Gaussians"):
         style_metrics(random_scene(1), line, SMALL)
 

@@ -53,7 +53,7 @@ elements, so that no shared length unit is needed: a copy holds as many Gaussian
     Score: the mean over the three k of the 1-D W1 between result and style distributions, each over the
     interquartile range of the style's (unit-free).
     ``element_thickness_w1``: an element's own relief. Around the same centres, the n_e / 4 nearest
-    Gaussians whose colour lies within tau of the centre's (tau: the style's median RGB distance from a
+    Gaussians whose colour lies within tau (inclusive) of the centre's (tau: the style's median RGB distance from a
     Gaussian to its 8 nearest; mostly the centre's own element, whatever the content's curvature under
     it) and their ``sqrt(l3 / (l1 + l2))`` (at least 8 kept, else the centre is not counted): an element
     flattened into a chip falls towards 0, a confetti of colours keeps few and scattered Gaussians.
@@ -255,7 +255,7 @@ def element_descriptors(means: torch.Tensor, rgb: torch.Tensor, n_e: int, tau: f
     kmax = min(max(*ks, kt), len(x))
     _, nb = knn(x[centres], x, kmax)
     col = torch.stack([c[nb[:, :min(k, kmax)]].var(1, unbiased=False).sum(-1) for k in ks], 1)
-    q, w = x[nb[:, :min(kt, kmax)]], (c[nb[:, :min(kt, kmax)]] - c[centres, None]).norm(dim=-1) < tau
+    q, w = x[nb[:, :min(kt, kmax)]], (c[nb[:, :min(kt, kmax)]] - c[centres, None]).norm(dim=-1) <= tau
     n = w.sum(1, keepdim=True).clamp_min(1)
     d = (q - (q * w[..., None]).sum(1, keepdim=True) / n[..., None]) * w[..., None]
     lam = torch.linalg.eigvalsh(d.transpose(1, 2) @ d / n[..., None]).clamp_min(0)  # ascending
