@@ -598,6 +598,18 @@ def test_whole_element_metrics_see_torn_and_flattened_elements(tmp_path):
         element_metrics(other, style, 0, cfg)
 
 
+def test_whole_element_descriptors_are_per_centre_across_memory_chunks():
+    """Large elements split the centres into chunks (memory); each centre's descriptors are its own."""
+    from wast3d.metrics import element_descriptors
+
+    sc = random_scene(6000, seed=2)
+    every = torch.arange(6000)  # n_e 4000: 1000 neighbours, chunks of 4194 centres
+    col, thick = element_descriptors(sc.means, sc.rgb, 4000, 0.5, every)
+    for i in (0, 4193, 4194, 5999):
+        c1, t1 = element_descriptors(sc.means, sc.rgb, 4000, 0.5, every[i:i + 1])
+        assert torch.allclose(col[i], c1[0]) and torch.allclose(thick[i], t1[0], equal_nan=True)
+
+
 def test_texture_swd_zero_for_identical_sees_a_flat_image_and_ignores_silhouettes():
     from wast3d.image_metrics import TextureConfig, texture_swd
 

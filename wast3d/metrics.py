@@ -253,14 +253,19 @@ def element_descriptors(means: torch.Tensor, rgb: torch.Tensor, n_e: int, tau: f
     ks = [max(MIN_NEIGHBOURS, round(n_e * f)) for f in COHERENCE_FRACTIONS]
     kt = max(MIN_NEIGHBOURS, round(n_e * THICKNESS_FRACTION))
     kmax = min(max(*ks, kt), len(x))
-    _, nb = knn(x[centres], x, kmax)
-    col = torch.stack([c[nb[:, :min(k, kmax)]].var(1, unbiased=False).sum(-1) for k in ks], 1)
-    q, w = x[nb[:, :min(kt, kmax)]], (c[nb[:, :min(kt, kmax)]] - c[centres, None]).norm(dim=-1) <= tau
-    n = w.sum(1, keepdim=True).clamp_min(1)
-    d = (q - (q * w[..., None]).sum(1, keepdim=True) / n[..., None]) * w[..., None]
-    lam = torch.linalg.eigvalsh(d.transpose(1, 2) @ d / n[..., None]).clamp_min(0)  # ascending
-    thick = (lam[:, 0] / (lam[:, 1] + lam[:, 2]).clamp_min(1e-30)).sqrt()
-    return col, torch.where(w.sum(1) >= MIN_NEIGHBOURS, thick, torch.nan)
+    kt = min(kt, kmax)
+    cols, thicks = [], []
+    # centres in chunks of about 2^22 neighbour entries: memory bounded whatever the element size
+    for part in centres.split(max(1, 2**22 // kmax)):
+        _, nb = knn(x[part], x, kmax)
+        cols.append(torch.stack([c[nb[:, :min(k, kmax)]].var(1, unbiased=False).sum(-1) for k in ks], 1))
+        q, w = x[nb[:, :kt]], (c[nb[:, :kt]] - c[part, None]).norm(dim=-1) <= tau
+        n = w.sum(1, keepdim=True).clamp_min(1)
+        d = (q - (q * w[..., None]).sum(1, keepdim=True) / n[..., None]) * w[..., None]
+        lam = torch.linalg.eigvalsh(d.transpose(1, 2) @ d / n[..., None]).clamp_min(0)  # ascending
+        thick = (lam[:, 0] / (lam[:, 1] + lam[:, 2]).clamp_min(1e-30)).sqrt()
+        thicks.append(torch.where(w.sum(1) >= MIN_NEIGHBOURS, thick, torch.nan))
+    return torch.cat(cols), torch.cat(thicks)
 
 
 def colour_tolerance(means: torch.Tensor, rgb: torch.Tensor, g: torch.Generator, centres: int = 8192) -> float:
