@@ -241,17 +241,18 @@ def relief_w1(result: torch.Tensor, style: torch.Tensor, cfg: "MetricsConfig") -
 
 
 COHERENCE_FRACTIONS = (1 / 32, 1 / 16, 1 / 8)  # element_colour_w1's neighbourhoods, in elements (n_e)
-THICKNESS_FRACTION = 1 / 4  # element_thickness_w1's neighbourhood, in elements
+THICKNESS_FRACTION = 1 / 4  # element_thickness_w1's neighbourhood, in elements (benchmarks/whole_fractions.py)
 MIN_NEIGHBOURS = 8
 
 
-def element_descriptors(means: torch.Tensor, rgb: torch.Tensor, n_e: int, tau: float, centres: torch.Tensor):
+def element_descriptors(means: torch.Tensor, rgb: torch.Tensor, n_e: int, tau: float, centres: torch.Tensor,
+                        thickness_fraction: float = THICKNESS_FRACTION):
     """Per centre (means [N, 3], rgb [N, 3], centres [C] indices) the descriptors of :func:`element_metrics`:
     (colour variance [C, len(COHERENCE_FRACTIONS)], thickness [C], NaN where fewer than MIN_NEIGHBOURS
-    Gaussians within colour distance ``tau`` of the centre's are among its n_e * THICKNESS_FRACTION nearest)."""
+    Gaussians within colour distance ``tau`` of the centre's are among its n_e * ``thickness_fraction`` nearest)."""
     x, c = means.double(), rgb.double()
     ks = [max(MIN_NEIGHBOURS, round(n_e * f)) for f in COHERENCE_FRACTIONS]
-    kt = max(MIN_NEIGHBOURS, round(n_e * THICKNESS_FRACTION))
+    kt = max(MIN_NEIGHBOURS, round(n_e * thickness_fraction))
     kmax = min(max(*ks, kt), len(x))
     kt = min(kt, kmax)
     cols, thicks = [], []
@@ -276,16 +277,19 @@ def colour_tolerance(means: torch.Tensor, rgb: torch.Tensor, g: torch.Generator,
     return float((rgb.double()[nb] - rgb.double()[idx, None]).norm(dim=-1).median())
 
 
-def element_metrics(result: GaussianScene, style: GaussianScene, n_e: int, cfg: "MetricsConfig") -> dict:
+def element_metrics(result: GaussianScene, style: GaussianScene, n_e: int, cfg: "MetricsConfig",
+                    thickness_fraction: float = THICKNESS_FRACTION) -> dict:
     """``element_colour_w1`` and ``element_thickness_w1`` of the module docstring; n_e: the style's median
     Gaussians per element (segment). Each side's centres are drawn by a fresh generator seeded with
-    ``cfg.seed``: the same cloud scores 0."""
+    ``cfg.seed``: the same cloud scores 0. ``thickness_fraction``: benchmarks/whole_fractions.py's sweep."""
     if n_e < 1:
         raise ValueError(f"element metrics: the style's element size must be >= 1 Gaussian, got {n_e}")
     rng = lambda: torch.Generator().manual_seed(cfg.seed)  # noqa: E731
     tau = colour_tolerance(style.means, style.rgb, rng())
-    ca, ta = element_descriptors(result.means, result.rgb, n_e, tau, _subsample(len(result), cfg.element_centres, rng()))
-    cb, tb = element_descriptors(style.means, style.rgb, n_e, tau, _subsample(len(style), cfg.element_centres, rng()))
+    ca, ta = element_descriptors(result.means, result.rgb, n_e, tau, _subsample(len(result), cfg.element_centres, rng()),
+                                 thickness_fraction)
+    cb, tb = element_descriptors(style.means, style.rgb, n_e, tau, _subsample(len(style), cfg.element_centres, rng()),
+                                 thickness_fraction)
 
     def unit_free(u: torch.Tensor, v: torch.Tensor) -> float | None:
         u, v = u[~u.isnan()], v[~v.isnan()]
