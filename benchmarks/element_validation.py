@@ -102,22 +102,24 @@ def main(argv=None) -> None:
         cams = read_cameras(render_dir, json.loads((render_dir / "render.json").read_text())["frames"])
         whole = element_whole(element_pieces(replace(res, means=shuffled), copy_ids(res.element, clusters), cams,
                                              cfg.piece_tol, cfg.min_alpha, weight)) or 0.0
+        chips = flattened(res.means, copy_ids(res.element, clusters))
+        whole_rows = whole_controls(a.results, pair, {"confetti": replace(res, means=shuffled),
+                                                      "chips": replace(res, means=chips)}, rows, a.seeds)
         row = {"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
                "element_share_ratio": None, "element_intact": conf["intact"],
                "element_whole_ratio": whole / whole_style, "coverage": None}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
-        row.update(whole_controls(a.results, pair, replace(res, means=shuffled), rows, a.seeds))
+        row.update(whole_rows["confetti"])
         row.update(segment_scores(a.results, content, style, replace(res, means=shuffled), before, clusters, cams))
         rows.append(row)
-        chips = flattened(res.means, copy_ids(res.element, clusters))
         row = {"pair": pair, "control": "chips (negative)", "method": "default, each copy flattened to 1/5 height",
                "element_intact": element_intact(before, chips, copy_ids(res.element, clusters), cfg)["intact"],
                "element_whole_ratio": (element_whole(element_pieces(replace(res, means=chips), copy_ids(res.element, clusters),
                                                                     cams, cfg.piece_tol, cfg.min_alpha, weight)) or 0.0) / whole_style}
         if a.texture:
             row.update(texture_controls(a.results, pair, replace(res, means=chips), rows, a.seeds, "chips"))
-        row.update(whole_controls(a.results, pair, replace(res, means=chips), rows, a.seeds, "chips"))
+        row.update(whole_rows["chips"])
         row.update(segment_scores(a.results, content, style, replace(res, means=chips), before, clusters, cams))
         rows.append(row)
         sty = read_ply(own["style"])
@@ -197,10 +199,10 @@ def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch
 WHOLE = ("element_colour_w1", "element_thickness_w1")
 
 
-def whole_controls(results: Path, pair: str, scene, rows: list[dict], seeds: int, name: str = "confetti") -> dict:
-    """element_colour_w1 and element_thickness_w1 of a control ``scene`` by the evaluate stage's own function
-    (the pair's texture reference, ours' metrics settings), their spread over ``seeds`` metric seeds on ours,
-    and each one's verdict (module docstring)."""
+def whole_controls(results: Path, pair: str, controls: dict, rows: list[dict], seeds: int) -> dict[str, dict]:
+    """element_colour_w1 and element_thickness_w1 of each control scene (``controls``: name -> scene) by the
+    evaluate stage's own function (the pair's texture reference, ours' metrics settings), their spread over
+    ``seeds`` metric seeds on ours (computed once for all controls), and each one's verdict (module docstring)."""
     import statistics
 
     from wast3d.metrics import MetricsConfig
@@ -213,14 +215,15 @@ def whole_controls(results: Path, pair: str, scene, rows: list[dict], seeds: int
     ref = Path(artifact("texture_reference", results, **names))
     mcfg = MetricsConfig(**ours["config"]["metrics"])
     style, result = read_ply(ours["style"]), read_ply(ours["result"])
-    control = evaluate_whole_elements(scene, style, ref, mcfg)
     own = [evaluate_whole_elements(result, style, ref, replace(mcfg, seed=k)) for k in range(seeds)]
     collage = next((r for r in rows if r["pair"] == pair and r["method"] == "selected"), {})
     out = {}
-    for key in WHOLE:
-        spread = statistics.stdev(o[key] for o in own) if seeds > 1 and control[key] is not None else float("nan")
-        out.update({key: control[key], f"{key}_spread": spread,
-                    f"{key}_verdict": verdict(collage.get(key), control[key], spread, name)})
+    for name, scene in controls.items():
+        control, out[name] = evaluate_whole_elements(scene, style, ref, mcfg), {}
+        for key in WHOLE:
+            spread = statistics.stdev(o[key] for o in own) if seeds > 1 and control[key] is not None else float("nan")
+            out[name].update({key: control[key], f"{key}_spread": spread,
+                              f"{key}_verdict": verdict(collage.get(key), control[key], spread, name)})
     return out
 
 
