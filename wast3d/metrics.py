@@ -239,7 +239,6 @@ def relief_w1(result: torch.Tensor, style: torch.Tensor, cfg: "MetricsConfig") -
     return float(np.mean([wasserstein_1d(da[:, i, j], db[:, i, j]) for i in range(da.shape[1]) for j in range(2)]))
 
 
-
 COHERENCE_FRACTIONS = (1 / 32, 1 / 16, 1 / 8)  # element_colour_w1's neighbourhoods, in elements (n_e)
 THICKNESS_FRACTION = 1 / 4  # element_thickness_w1's neighbourhood, in elements (benchmarks/whole_fractions.py)
 MIN_NEIGHBOURS = 8
@@ -251,15 +250,14 @@ def element_descriptors(means: torch.Tensor, rgb: torch.Tensor, n_e: int, tau: f
     (colour variance [C, len(COHERENCE_FRACTIONS)], thickness [C], NaN where fewer than MIN_NEIGHBOURS
     Gaussians within colour distance ``tau`` of the centre's are among its n_e * ``thickness_fraction`` nearest)."""
     x, c = means.double(), rgb.double()
-    ks = [max(MIN_NEIGHBOURS, round(n_e * f)) for f in COHERENCE_FRACTIONS]
-    kt = max(MIN_NEIGHBOURS, round(n_e * thickness_fraction))
-    kmax = min(max(*ks, kt), len(x))
-    kt = min(kt, kmax)
+    ks = [max(MIN_NEIGHBOURS, round(n_e * f)) for f in (*COHERENCE_FRACTIONS, thickness_fraction)]
+    kmax = min(max(ks), len(x))
+    *ks, kt = [min(k, kmax) for k in ks]
     cols, thicks = [], []
     # centres in chunks of about 2^22 neighbour entries: memory bounded whatever the element size
     for part in centres.split(max(1, 2**22 // kmax)):
         _, nb = knn(x[part], x, kmax)
-        cols.append(torch.stack([c[nb[:, :min(k, kmax)]].var(1, unbiased=False).sum(-1) for k in ks], 1))
+        cols.append(torch.stack([c[nb[:, :k]].var(1, unbiased=False).sum(-1) for k in ks], 1))
         q, w = x[nb[:, :kt]], (c[nb[:, :kt]] - c[part, None]).norm(dim=-1) <= tau
         n = w.sum(1, keepdim=True).clamp_min(1)
         d = (q - (q * w[..., None]).sum(1, keepdim=True) / n[..., None]) * w[..., None]

@@ -477,20 +477,32 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     return {**out, "element_status": status}
 
 
+def style_segments(texture_reference: Path, style) -> tuple[torch.Tensor, str] | None:
+    """The style's label-free elements that the texture reference wrote (:func:`run_texture_reference`):
+    ``segments`` [M] (long) of its M Gaussians and how they were made; None where it wrote none. A file
+    that does not number the style's Gaussians is an error naming it."""
+    seg_file = Path(texture_reference) / "segments.npz"
+    if not seg_file.exists():
+        return None
+    seg_npz = load_npz(seg_file, required=("segments",))
+    segments = torch.from_numpy(seg_npz["segments"]).long()
+    if len(segments) != len(style):
+        raise ValueError(f"{seg_file}: 'segments' has {len(segments)} entries, the style {len(style)} Gaussians")
+    return segments, str(seg_npz["how"]) if "how" in seg_npz else "relief basins"
+
+
 def evaluate_whole_elements(result, style, texture_reference: Path, cfg) -> dict:
     """``element_colour_w1`` and ``element_thickness_w1`` (:func:`wast3d.metrics.element_metrics`) at the
     style's element size: the median Gaussians per segment of ``texture_reference``/segments.npz."""
     from .metrics import element_metrics
 
+    seg = style_segments(texture_reference, style)
     seg_file = Path(texture_reference) / "segments.npz"
-    if not seg_file.exists():
+    if seg is None:
         return {"element_colour_w1": None, "element_thickness_w1": None,
                 "whole_status": f"not computed: {seg_file} does not exist (no element size: a texture reference "
                                 "without a registration, or a style without relief)"}
-    segments = load_npz(seg_file, required=("segments",))["segments"]
-    if len(segments) != len(style):
-        raise ValueError(f"{seg_file}: 'segments' has {len(segments)} entries, the style {len(style)} Gaussians")
-    counts = np.bincount(np.asarray(segments, dtype=np.int64))
+    counts = np.bincount(seg[0].numpy())
     n_e = int(np.median(counts[counts > 0]))
     return {**element_metrics(result, style, n_e, cfg),
             "whole_status": f"computed at {n_e} Gaussians per element (the median of {seg_file})"}
@@ -507,14 +519,11 @@ def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style
     from .render import element_pieces, read_cameras
 
     out = {"segment_whole": None, "segment_whole_style": None, "segment_whole_ratio": None, "segment_intact": None}
-    seg_file = Path(texture_reference) / "segments.npz"
-    if not seg_file.exists():
-        return {**out, "segment_status": f"not computed: {seg_file} does not exist (a texture reference without a "
-                                         "registration, or a style without relief)"}
-    seg_npz = load_npz(seg_file, required=("segments",))
-    segments = torch.from_numpy(seg_npz["segments"]).long()
-    if len(segments) != len(style):
-        raise ValueError(f"{seg_file}: 'segments' has {len(segments)} entries, the style {len(style)} Gaussians")
+    seg = style_segments(texture_reference, style)
+    if seg is None:
+        return {**out, "segment_status": f"not computed: {Path(texture_reference) / 'segments.npz'} does not exist "
+                                         "(a texture reference without a registration, or a style without relief)"}
+    segments, how = seg
     style_whole = element_whole(element_pieces(style, segments, read_cameras(texture_reference, n_style),
                                                cfg.piece_tol, cfg.min_alpha))
     out["segment_whole_style"] = style_whole
@@ -535,7 +544,6 @@ def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style
         whole = element_whole(element_pieces(result, copies, read_cameras(result_render, n_frames), cfg.piece_tol,
                                              cfg.min_alpha, piece_weight(d, stylize_npz, texture_reference))) or 0.0
         out.update(segment_whole=whole, segment_whole_ratio=whole / style_whole)
-    how = str(seg_npz["how"]) if "how" in seg_npz else "relief basins"
     return {**out, "segment_status": f"{int(segments.max()) + 1} segments ({how})"}
 
 

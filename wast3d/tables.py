@@ -86,8 +86,8 @@ def to_markdown(df: pd.DataFrame) -> str:
 # ---- Table 1 ---------------------------------------------------------------------------------
 
 METRIC_COLUMNS = ("content_chamfer", "coarse_chamfer", "coverage", "coverage_element", "element_share_ratio",
-                  "element_intact", "element_whole_ratio", "segment_intact", "segment_whole_ratio", "element_colour_w1", "element_thickness_w1",
-                  "relief_w1", "texture_swd", "style_patch_chamfer",
+                  "element_intact", "element_whole_ratio", "segment_intact", "segment_whole_ratio",
+                  "element_colour_w1", "element_thickness_w1", "relief_w1", "texture_swd", "style_patch_chamfer",
                   "style_patch_sinkhorn", "tilt_w1_deg", "aniso_w1", "colour_sinkhorn")
 
 
