@@ -1,5 +1,6 @@
 """The constraints and dependencies install on any machine: no pinned local wheel path, URL or VCS."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -45,3 +46,15 @@ def test_setup_installs_the_extra_with_the_slurm_plugin():
     dev = " ".join(proj["optional-dependencies"]["dev"])
     assert "snakemake-executor-plugin-slurm" in dev and "gsplat" in dev and "pytest" in dev
     assert 'WAST3D_EXTRAS:-dev' in (ROOT / "scripts" / "setup.sh").read_text()
+
+
+def test_setup_stops_before_a_new_venv_without_disk_space(tmp_path):
+    """A disk too full for a new .venv is named before pip starts, and no half-made venv is left."""
+    scripts = tmp_path / "scripts"
+    scripts.mkdir()
+    (scripts / "setup.sh").write_text((ROOT / "scripts" / "setup.sh").read_text())
+    env = {**os.environ, "WAST3D_NEED_GB": str(10**9)}
+    r = subprocess.run(["bash", str(scripts / "setup.sh")], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert r.returncode == 1
+    assert str(tmp_path) in r.stderr and "GB free" in r.stderr and "WAST3D_NEED_GB" in r.stderr
+    assert not (tmp_path / ".venv").exists()
