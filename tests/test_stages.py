@@ -28,10 +28,12 @@ def test_each_stage_function_takes_exactly_its_declared_files(command):
     for p in st.ports:  # an optional file has a default (None), a required one none
         if p.beside is None:
             assert (sig.parameters[p.keyword].default is inspect.Parameter.empty) == p.required, p.name
-    from wast3d.stages import config_class
+    from wast3d.stages import import_spec
 
     for spec in (st.config.values() if isinstance(st.config, dict) else [st.config] if st.config else []):
-        assert config_class(spec)
+        assert import_spec(spec)
+    if st.by_form:
+        assert isinstance(import_spec(st.by_form), dict) and import_spec(st.by_form)
 
 
 def test_command_options_come_from_the_declaration():

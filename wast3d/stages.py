@@ -260,8 +260,9 @@ STAGES: dict[str, Stage] = {s.command: s for s in (
 )}
 
 
-def config_class(spec: str):
-    """The dataclass named by ``module:Class`` (imported on demand: the stages' modules import torch)."""
+def import_spec(spec: str):
+    """The object named by ``module:NAME``: a stage's config dataclass or its form dict (:attr:`Stage.by_form`),
+    imported on demand (the stages' modules import torch)."""
     import importlib
 
     module, name = spec.split(":")
@@ -283,11 +284,11 @@ def stage_configs(command: str, params: dict | None) -> dict:
     st = STAGES[command]
     params = {k: v for k, v in run_params(params or {}).items() if k not in st.passthrough}
     if not isinstance(st.config, dict):
-        return {None: make_config(config_class(st.config), params, command)}
+        return {None: make_config(import_spec(st.config), params, command)}
     unknown = sorted(set(params) - set(st.config))
     if unknown:
         raise ValueError(f"{command}: unknown parameter block(s) {', '.join(unknown)} (known: {', '.join(st.config)})")
-    return {k: make_config(config_class(spec), params.get(k), f"{command}.{k}") for k, spec in st.config.items()}
+    return {k: make_config(import_spec(spec), params.get(k), f"{command}.{k}") for k, spec in st.config.items()}
 
 
 def resolved_params(command: str, params: dict | None) -> dict:
@@ -309,7 +310,7 @@ def resolved_params(command: str, params: dict | None) -> dict:
         else:
             out[key] = dataclasses.asdict(cfg)
     if STAGES[command].by_form:
-        out["by_form"] = json.loads(json.dumps(config_class(STAGES[command].by_form)))  # tuples as lists
+        out["by_form"] = json.loads(json.dumps(import_spec(STAGES[command].by_form)))  # tuples as lists
     return out
 
 

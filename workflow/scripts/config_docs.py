@@ -25,7 +25,7 @@ STAGES_OUT = ROOT / "docs" / "stages.md"
 
 sys.path.insert(0, str(ROOT))
 from wast3d.options import groups, schema_properties, undocumented  # noqa: E402 - the checkout's own declarations
-from wast3d.stages import STAGES, config_class  # noqa: E402
+from wast3d.stages import STAGES, import_spec  # noqa: E402
 
 # schema block (dotted path, $defs resolved) -> the dataclass whose defaults apply: each stage's block
 # from its declaration (wast3d/stages.py), and the blocks that are parts of one
@@ -207,7 +207,7 @@ def build_schema(node):
     out = {}
     for k, v in node.items():
         if k == "$properties":
-            out["properties"] = {**schema_properties(config_class(v)), **build_schema(node.get("properties", {}))}
+            out["properties"] = {**schema_properties(import_spec(v)), **build_schema(node.get("properties", {}))}
         elif k != "properties" or "$properties" not in node:
             out[k] = build_schema(v)
     return out
