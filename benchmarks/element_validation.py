@@ -42,11 +42,12 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-import pandas as pd
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import write_rows  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -103,8 +104,9 @@ def main(argv=None) -> None:
         whole = element_whole(element_pieces(replace(res, means=shuffled), copy_ids(res.element, clusters), cams,
                                              cfg.piece_tol, cfg.min_alpha, weight)) or 0.0
         chips = flattened(res.means, copy_ids(res.element, clusters))
-        whole_rows = whole_controls(a.results, pair, {"confetti": replace(res, means=shuffled),
-                                                      "chips": replace(res, means=chips)}, rows, a.seeds)
+        sty = read_ply(own["style"])
+        whole_rows = whole_controls(own, ref_dir, res, sty, {"confetti": replace(res, means=shuffled),
+                                                             "chips": replace(res, means=chips)}, pair, rows, a.seeds)
         row = {"pair": pair, "control": "confetti (negative)", "method": "default, shuffled in each cluster",
                "element_share_ratio": None, "element_intact": conf["intact"],
                "element_whole_ratio": whole / whole_style, "coverage": None}
@@ -122,7 +124,6 @@ def main(argv=None) -> None:
         row.update(whole_rows["chips"])
         row.update(segment_scores(a.results, content, style, replace(res, means=chips), before, clusters, cams))
         rows.append(row)
-        sty = read_ply(own["style"])
         ref_cams = read_cameras(ref_dir, json.loads((ref_dir / "render.json").read_text())["frames"])
         for axes, role in ((1, "style, elements cut in two (known ~0.5)"), (2, "style, elements cut in four (~0.25)")):
             cut = cut_elements(sty.means, sty.element, axes)
@@ -135,10 +136,7 @@ def main(argv=None) -> None:
                                                  cfg.min_alpha)) or 0.0
                 row["segment_whole_ratio"] = w / own["segment_whole_style"]
             rows.append(row)
-    df = pd.DataFrame(rows)
-    out = a.results / "benchmarks" / "element_validation.csv"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    df.to_csv(out, index=False)
+    df = write_rows(rows, a.results / "benchmarks" / "element_validation.csv")
     print(df.to_string(index=False))
 
 
@@ -199,22 +197,18 @@ def cut_elements(means: torch.Tensor, element: torch.Tensor, axes: int) -> torch
 WHOLE = ("element_colour_w1", "element_thickness_w1")
 
 
-def whole_controls(results: Path, pair: str, controls: dict, rows: list[dict], seeds: int) -> dict[str, dict]:
+def whole_controls(ours: dict, ref: Path, result, style, controls: dict, pair: str, rows: list[dict],
+                   seeds: int) -> dict[str, dict]:
     """element_colour_w1 and element_thickness_w1 of each control scene (``controls``: name -> scene) by the
-    evaluate stage's own function (the pair's texture reference, ours' metrics settings), their spread over
-    ``seeds`` metric seeds on ours (computed once for all controls), and each one's verdict (module docstring)."""
+    evaluate stage's own function (the pair's texture reference ``ref``, the metrics settings of ours' eval
+    JSON ``ours``), their spread over ``seeds`` metric seeds on ours (``result`` against ``style``, computed
+    once for all controls), and each one's verdict (module docstring)."""
     import statistics
 
     from wast3d.metrics import MetricsConfig
     from wast3d.pipeline import evaluate_whole_elements
-    from wast3d.ply import read_ply
-    from wast3d.stages import artifact
 
-    names = dict(zip(("content", "style"), pair.split("__")))
-    ours = json.loads(Path(artifact("eval", results, **names, method="default")).read_text())
-    ref = Path(artifact("texture_reference", results, **names))
     mcfg = MetricsConfig(**ours["config"]["metrics"])
-    style, result = read_ply(ours["style"]), read_ply(ours["result"])
     own = [evaluate_whole_elements(result, style, ref, replace(mcfg, seed=k)) for k in range(seeds)]
     collage = next((r for r in rows if r["pair"] == pair and r["method"] == "selected"), {})
     out = {}

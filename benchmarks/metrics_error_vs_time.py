@@ -29,7 +29,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import OUT, ROOT  # noqa: E402
+from common import OUT, ROOT, write_rows  # noqa: E402
 
 KEYS = ("style_patch_chamfer", "style_patch_sinkhorn", "colour_sinkhorn")
 
@@ -76,8 +76,7 @@ def main() -> None:
     for k in KEYS:  # error relative to the largest sample's mean (its own spread is the floor)
         ref = out[f"{k}_mean"].iloc[-1]
         out[f"{k}_dev_from_largest_pct"] = 100 * (out[f"{k}_mean"] - ref).abs() / abs(ref)
-    OUT.mkdir(parents=True, exist_ok=True)
-    out.to_csv(OUT / "metrics_error_vs_time.csv", index=False)
+    write_rows(out.to_dict("records"), OUT / "metrics_error_vs_time.csv")
     print(out.to_string(index=False))
 
 
@@ -109,9 +108,7 @@ def whole_error_vs_time(pair: str, seeds: int) -> None:
             row.update({f"{k}_mean": float(df[k].mean()), f"{k}_std": float(df[k].std())})
         rows.append(row)
         print(pd.DataFrame([row]).to_string(index=False), flush=True)
-    OUT.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame(rows).to_csv(OUT / "whole_metrics_error_vs_time.csv", index=False)
-    print(pd.DataFrame(rows).to_string(index=False))
+    print(write_rows(rows, OUT / "whole_metrics_error_vs_time.csv").to_string(index=False))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import write_rows  # noqa: E402
 
 FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2)
 
@@ -67,8 +68,7 @@ def main(argv=None) -> None:
             rows.append(row)
             print(pd.DataFrame([row]).to_string(index=False, header=len(rows) == 1), flush=True)
     out = a.results / "benchmarks" / "whole_fractions.csv"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame(rows).to_csv(out, index=False)
+    write_rows(rows, out)
     print(f"wrote {out}")
 
 
