@@ -12,6 +12,7 @@ import dataclasses
 import logging
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -477,18 +478,26 @@ def evaluate_elements(result, style, frames: torch.Tensor, result_render: Path, 
     return {**out, "element_status": status}
 
 
-def style_segments(texture_reference: Path, style) -> tuple[torch.Tensor, str] | None:
-    """The style's label-free elements that the texture reference wrote (:func:`run_texture_reference`):
-    ``segments`` [M] (long) of its M Gaussians and how they were made; None where it wrote none. A file
-    that does not number the style's Gaussians is an error naming it."""
+class StyleSegments(NamedTuple):
+    """The style's label-free elements (:func:`style_segments`)."""
+
+    file: Path  # the texture reference's segments.npz
+    segments: torch.Tensor | None  # [M] long: the segment of each of the style's M Gaussians; None: no file
+    how: str | None  # how they were made (relief basins of a patch, laid-out elements of a sheet)
+
+
+def style_segments(texture_reference: Path, style) -> StyleSegments:
+    """The style's label-free elements that the texture reference wrote (:func:`run_texture_reference`),
+    ``segments`` None where it wrote none. A file that does not number the style's Gaussians is an error
+    naming it."""
     seg_file = Path(texture_reference) / "segments.npz"
     if not seg_file.exists():
-        return None
+        return StyleSegments(seg_file, None, None)
     seg_npz = load_npz(seg_file, required=("segments",))
     segments = torch.from_numpy(seg_npz["segments"]).long()
     if len(segments) != len(style):
         raise ValueError(f"{seg_file}: 'segments' has {len(segments)} entries, the style {len(style)} Gaussians")
-    return segments, str(seg_npz["how"]) if "how" in seg_npz else "relief basins"
+    return StyleSegments(seg_file, segments, str(seg_npz["how"]) if "how" in seg_npz else "relief basins")
 
 
 def evaluate_whole_elements(result, style, texture_reference: Path, cfg) -> dict:
@@ -497,15 +506,14 @@ def evaluate_whole_elements(result, style, texture_reference: Path, cfg) -> dict
     from .metrics import element_metrics
 
     seg = style_segments(texture_reference, style)
-    seg_file = Path(texture_reference) / "segments.npz"
-    if seg is None:
+    if seg.segments is None:
         return {"element_colour_w1": None, "element_thickness_w1": None,
-                "whole_status": f"not computed: {seg_file} does not exist (no element size: a texture reference "
+                "whole_status": f"not computed: {seg.file} does not exist (no element size: a texture reference "
                                 "without a registration, or a style without relief)"}
-    counts = np.bincount(seg[0].numpy())
+    counts = np.bincount(seg.segments.numpy())
     n_e = int(np.median(counts[counts > 0]))
     return {**element_metrics(result, style, n_e, cfg),
-            "whole_status": f"computed at {n_e} Gaussians per element (the median of {seg_file})"}
+            "whole_status": f"computed at {n_e} Gaussians per element (the median of {seg.file})"}
 
 
 def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style: int, texture_reference: Path,
@@ -520,10 +528,10 @@ def evaluate_segments(result, style, n_frames: int, result_render: Path, n_style
 
     out = {"segment_whole": None, "segment_whole_style": None, "segment_whole_ratio": None, "segment_intact": None}
     seg = style_segments(texture_reference, style)
-    if seg is None:
-        return {**out, "segment_status": f"not computed: {Path(texture_reference) / 'segments.npz'} does not exist "
+    if seg.segments is None:
+        return {**out, "segment_status": f"not computed: {seg.file} does not exist "
                                          "(a texture reference without a registration, or a style without relief)"}
-    segments, how = seg
+    segments, how = seg.segments, seg.how
     style_whole = element_whole(element_pieces(style, segments, read_cameras(texture_reference, n_style),
                                                cfg.piece_tol, cfg.min_alpha))
     out["segment_whole_style"] = style_whole
