@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -39,11 +40,24 @@ def drop_invalid_option(sub) -> None:
                           "quaternion) instead of failing; the log says how many")
 
 
-def output_file(path: Path) -> Path:
-    """``path`` as a file to write: a ValueError naming it when it is a folder."""
+def output_file(path: Path, *inputs: Path) -> Path:
+    """``path`` as a file to write: a ValueError naming it when it is a folder, or when it is one of the
+    ``inputs`` (after links are resolved): a writer never replaces what it reads."""
     if path.is_dir():
         raise ValueError(f"{path}: is a folder; give the file to write (its extension picks the format)")
+    not_an_input(path, *inputs)
     return path
+
+
+def not_an_input(out: Path, *inputs: Path) -> None:
+    """A ValueError when ``out`` (a file or a folder to write) is one of ``inputs`` or, for an input
+    folder, lies inside it, links resolved: the command would overwrite what it reads."""
+    o = Path(out).resolve()
+    for i in inputs:
+        r = Path(i).resolve()
+        if o == r or (r.is_dir() and r in o.parents):
+            raise ValueError(f"{out}: is the input {i}{' or inside it' if r.is_dir() else ''}; the output must be "
+                             "another file (inputs are never changed)")
 
 
 def scene_summary(scene) -> dict:
@@ -142,34 +156,54 @@ def cmd_run(sub):
 
     def run(a):
         import contextlib
+        import os
         import subprocess
 
         import yaml
 
         from .io_utils import atomic_path
-        from .quickstart import backup_path, config_text, plan_config, run_config, stale_locks, workflow_root
+        from .config_check import load_yaml
+        from .quickstart import (ConfigPlan, backup_path, check_path_text, config_text, configfiles, hold_folder,
+                                 inside_results, plan_config, run_config, stale_locks, workflow_root)
 
         if len(a.paths) < 3:
             raise ValueError("run: give CONTENT STYLE [STYLE ...] OUT")
-        content, styles, a.out = a.paths[0], a.paths[1:-1], a.paths[-1]
+        content, styles, a.out = a.paths[0], a.paths[1:-1], a.paths[-1].absolute()
+        for path, what in [(content, "the content"), *((s, "a style") for s in styles), (a.out, "OUT"),
+                           *([(a.regions, "--regions")] if a.regions else [])]:
+            check_path_text(path, what)
         if a.out.exists() and not a.out.is_dir():
             raise ValueError(f"{a.out}: OUT must be a folder (it is a file)")
+        for path in (content, *styles):
+            if inside_results(path, a.out):
+                raise ValueError(f"{path}: lies inside {a.out}'s results ({path.resolve()}), which this run writes and "
+                                 "may remove; copy it elsewhere first, or give another OUT")
         root = workflow_root()
         base = yaml.safe_load((root / "config" / "config.yaml").read_text())
         cfg = run_config(base, content, styles, a.split, a.regions)
         cfg_path = a.out / "config" / "config.yaml"
-        plan = plan_config(cfg_path, cfg, content, *styles)
-        if a.reset_config and plan.text != (cfg_text := config_text(cfg)):
-            plan = type(plan)("write", cfg_text, "reset to the defaults")
+        if a.reset_config and cfg_path.is_file() and cfg_path.read_bytes() != config_text(cfg).encode():
+            plan = ConfigPlan("write", config_text(cfg), "reset to the defaults")  # whatever it held, unreadable too
+        else:
+            plan = plan_config(cfg_path, cfg, content, *styles)
+        for f in configfiles(a.snakemake_args):  # Snakemake's own loader would fail on them with a traceback
+            load_yaml(f)
         used = yaml.safe_load(plan.text)
+        if plan.action == "keep" and (a.split or a.regions) and used.get("regions") != cfg.get("regions"):
+            raise ValueError(f"{cfg_path}: edited by hand, and its regions are not those {'--split' if a.split else '--regions'} "
+                             "asks for; edit its 'regions' block, or start over from the defaults with --reset-config "
+                             "(your file is kept beside it as a .bak)")
         pair = next(iter(used.get("pairs") or [[None, None]]))
         rset = next(iter(used.get("regions") or {}), None)
         with contextlib.ExitStack() as stack:
+            lock = None
             if a.dry_run:
                 workdir = dry_run_folder(a.out, plan.text, stack)
                 log.info("run: dry run: nothing is written in %s (config: %s, %s)", a.out, cfg_path, plan.why)
             else:
                 workdir = a.out
+                lock = hold_folder(a.out)
+                stack.callback(os.close, lock)
                 if plan.action == "write":
                     if cfg_path.exists() and a.reset_config:
                         bak = backup_path(cfg_path)
@@ -178,7 +212,8 @@ def cmd_run(sub):
                     with atomic_path(cfg_path) as tmp:
                         Path(tmp).write_text(plan.text)
                 log.info("run: %s x %s: config %s (%s)", *pair, cfg_path, plan.why)
-            cmd = [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", str(workdir),
+            # absolute paths: a folder named `-out` never reaches Snakemake as an option
+            cmd = [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", str(workdir.absolute()),
                    "--profile", a.profile or str(root / "workflow" / "profiles" / "local"),
                    *(["-n", "--nolock"] if a.dry_run else []), *a.snakemake_args]
             if not a.dry_run and stale_locks(a.out):
@@ -186,14 +221,17 @@ def cmd_run(sub):
                             "unlocked; the profile's rerun-incomplete redoes the jobs it left unfinished", a.out)
                 subprocess.run([*cmd, "--unlock"], capture_output=True, check=True)
             log.info("run: %s", " ".join(shlex.quote(c) for c in cmd))
-            rc = subprocess.run(cmd).returncode
+            rc = subprocess.run(cmd, pass_fds=() if lock is None else (lock,)).returncode
         if rc == 0 and not a.dry_run and None not in pair:
             from .stages import artifact
 
             c, s = pair
             s = rset or s
             res = a.out / "results"
-            final = artifact("final", res, content=c, style=s, experiment="default")
+            final = Path(artifact("final", res, content=c, style=s, experiment="default"))
+            if not final.exists():  # targets of their own after --: the result was not asked for
+                log.info("run: done (the targets asked for); the result %s is not built", final)
+                return rc
             log.info("run: done. Result: %s; renders: %s; table: %s; view: wast3d view %s", final,
                      Path(artifact("render_pair", res, content=c, style=s, method="default")).parent,
                      res / "tables" / ("regions.md" if rset else "table1.md"),
@@ -257,8 +295,9 @@ def cmd_import(sub):
         from .formats import read_scene
         from .ply import write_ply
 
+        out = output_file(a.out, a.ply)
         scene = read_scene(a.ply, drop_invalid=a.drop_invalid)
-        write_ply(output_file(a.out), scene)
+        write_ply(out, scene)
         log.info("imported %s -> %s: %d Gaussians, SH degree %d", a.ply, a.out, len(scene), scene.sh_degree)
         return 0
 
@@ -274,12 +313,16 @@ def cmd_export(sub):
     def run(a):
         from .formats import read_scene, write_scene
 
+        out = output_file(a.out, a.src)
         scene = read_scene(a.src, a.drop_invalid)
-        write_scene(output_file(a.out), scene)
+        write_scene(out, scene)
         log.info("exported %s -> %s: %d Gaussians", a.src, a.out, len(scene))
         return 0
 
     return run
+
+
+LIMITS = {"views": 1024, "size": 16384}  # a render command's bounds (the config schema's for its keys)
 
 
 def render_command(name: str, help_: str, fn: str, views: int, size: int, out_help: str):
@@ -297,6 +340,10 @@ def render_command(name: str, help_: str, fn: str, views: int, size: int, out_he
             from . import render
             from .formats import read_scene
 
+            not_an_input(a.out, a.ply)
+            for opt in ("views", "size"):
+                if not 1 <= getattr(a, opt) <= LIMITS[opt]:
+                    raise ValueError(f"{name}: --{opt} {getattr(a, opt)}: must be 1-{LIMITS[opt]}")
             getattr(render, fn)(read_scene(a.ply, a.drop_invalid), a.out, a.views, a.size)
             return 0
 
@@ -349,6 +396,10 @@ def stage_command(st) -> None:
             from . import pipeline
 
             kw = {p.keyword: getattr(a, p.keyword) for p in st.ports if p.beside is None}
+            ins = [kw[p.keyword] for p in st.ports if not p.output and kw.get(p.keyword) is not None]
+            for p in st.ports:
+                if p.output and kw.get(p.keyword) is not None:
+                    not_an_input(kw[p.keyword], *ins)
             if st.progress:
                 kw["progress"] = not a.no_progress
             getattr(pipeline, st.run)(**kw, params=run_params(_load_params(a.params)))
@@ -371,7 +422,9 @@ def columns_command(name: str, help_: str, out: str, fn: str):
         def run(a):
             from . import figures
 
-            getattr(figures, fn)(_columns(a.columns, name), getattr(a, out))
+            cols = _columns(a.columns, name)
+            not_an_input(getattr(a, out), *(p for _, p in cols))
+            getattr(figures, fn)(cols, getattr(a, out))
 
         return run
 
@@ -394,7 +447,8 @@ def cmd_merge(sub):
     def run(a):
         from .pipeline import merge_regions
 
-        merge_regions(_columns(a.parts, "merge-regions"), output_file(a.out))
+        parts = _columns(a.parts, "merge-regions")
+        merge_regions(parts, output_file(a.out, *(p for _, p in parts)))
         return 0
 
     return run
@@ -474,15 +528,30 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def subcommand(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` names: its first word that is not a global option (``-v``, ``--threads N``)."""
+    i = 0
+    while i < len(argv):
+        w = argv[i]
+        if w == "--threads":
+            i += 2
+            continue
+        if w.startswith("-"):
+            i += 1
+            continue
+        return w
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    # what follows `--` is Snakemake's (`wast3d run C S OUT -n -- TARGET`), wherever the options stand
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
     parser = build_parser()
-    args = parser.parse_args(argv[:len(argv) - len(extra) - 1] if "--" in argv else argv)
+    # `wast3d run`: what follows `--` is Snakemake's (`wast3d run C S OUT -n -- TARGET`), wherever the options
+    # stand; any other command takes `--` as argparse does (the end of options: `wast3d info -- -n.ply`)
+    cut = argv.index("--") if "--" in argv and subcommand(argv) == "run" else None
+    extra = [] if cut is None else argv[cut + 1:]
+    args = parser.parse_args(argv if cut is None else argv[:cut])
     if extra:
-        if not hasattr(args, "snakemake_args"):
-            parser.error(f"{args.cmd} takes no arguments after --")
         args.snakemake_args = [*args.snakemake_args, *extra]
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
@@ -494,10 +563,19 @@ def main(argv: list[str] | None = None) -> int:
             torch.set_num_threads(args.threads)
     try:
         return int(args._run(args) or 0)
+    except BrokenPipeError:  # `wast3d info x.ply | head`: the reader left; nothing more to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 0
     except (FileNotFoundError, ValueError) as e:  # PlyError and DatasetError are ValueErrors
         if not user_error(e):
             raise
         log.error("%s", e, exc_info=args.verbose)
+        return 2
+    except OSError as e:  # a folder that cannot be written (read-only, a file in its path, a full disk)
+        if e.filename is None:
+            raise
+        where = e.filename if e.filename2 is None else f"{e.filename} -> {e.filename2}"
+        log.error("%s: %s", where, e.strerror or e, exc_info=args.verbose)
         return 2
 
 

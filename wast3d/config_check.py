@@ -113,16 +113,114 @@ def check_config(config: Any, schema: dict, files: list[str]) -> None:
     check_schema(config, schema, files)
 
 
-def check_yaml_file(path: str | Path) -> None:
-    """A config file Snakemake is about to merge: loaded (aliases stay shared, so this is fast) and
-    refused beyond MAX_VALUES before Snakemake's merge walks every copy."""
+MAX_DEPTH = 64  # a config this project runs nests 7 deep; YAML's parser recurses once per level
+MAX_BYTES = 4 << 20  # a config or regions file of this project is a few kilobytes
+
+
+class _StrictLoader:
+    """yaml.SafeLoader that refuses a key given twice in one mapping (PyYAML keeps the last silently: a
+    second ``experiments:`` block would replace the first)."""
+
+    _cls = None
+
+    @classmethod
+    def get(cls):
+        if cls._cls is None:
+            import yaml
+
+            class Loader(yaml.SafeLoader):
+                pass
+
+            def mapping(loader, node, deep=False):
+                seen = {}
+                for k, _ in node.value:
+                    if k.tag == "tag:yaml.org,2002:merge":
+                        continue
+                    name = loader.construct_object(k, deep=True)
+                    try:
+                        first = seen.setdefault(name, k.start_mark.line + 1)
+                    except TypeError:  # an unhashable key: the constructor refuses it
+                        continue
+                    if first != k.start_mark.line + 1:
+                        raise ConfigError(f"line {k.start_mark.line + 1}: key '{name}' is given twice in one mapping "
+                                          f"(first at line {first}); the second would silently replace the first")
+                return loader.construct_mapping(node, deep)
+
+            Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+            cls._cls = Loader
+        return cls._cls
+
+
+def load_yaml(path: str | Path, what: str = "config", top: type | None = dict) -> Any:
+    """A YAML file a user gives, read within bounds, each refusal a ConfigError naming ``what`` and the
+    file: a regular file of at most MAX_BYTES (``/dev/zero`` is no config), UTF-8 text, nested at most
+    MAX_DEPTH deep (counted on the parser's events, which do not recurse), no key twice in one mapping,
+    at most MAX_VALUES values once aliases are expanded, and of type ``top`` at its top level."""
     import yaml
 
+    path = Path(path)
+    where = f"{what} {path}"
+    if not path.is_file():
+        raise ConfigError(f"{where}: {'not found' if not path.exists() else 'not a regular file'}")
+    if path.stat().st_size > MAX_BYTES:
+        raise ConfigError(f"{where}: {path.stat().st_size} bytes; a config holds at most {MAX_BYTES >> 20} MiB")
     try:
-        data = yaml.safe_load(Path(path).read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{where}: not UTF-8 text (byte {e.start}); a config is a YAML file") from None
+    except OSError as e:
+        raise ConfigError(f"{where}: cannot be read ({e.strerror})") from None
+    try:
+        depth = 0
+        for ev in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise ConfigError(f"{where}: line {ev.start_mark.line + 1}: nested more than {MAX_DEPTH} deep")
+            elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+                depth -= 1
+        data = yaml.load(text, Loader=_StrictLoader.get())  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as e:
-        raise ConfigError(f"config {path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    check_size(data, f"config {path}")
+        raise ConfigError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
+    except ConfigError as e:
+        raise ConfigError(str(e) if str(e).startswith(where) else f"{where}: {e}") from None
+    check_size(data, where)
+    if top is not None and not isinstance(data, top):
+        kind = {dict: "a mapping of keys", list: "a list"}.get(top, top.__name__)
+        raise ConfigError(f"{where}: must be {kind} at its top level, not {'nothing (empty)' if data is None else type(data).__name__}")
+    return data
+
+
+def check_yaml_file(path: str | Path) -> None:
+    """A config file Snakemake is about to merge (or has merged): :func:`load_yaml`'s bounds, before
+    Snakemake's merge walks every copy of an alias."""
+    load_yaml(path)
+
+
+WILDCARD = r"\{\s*[.\w]+\s*(,[^}]*)?\}"  # what Snakemake reads as a wildcard in a path
+
+
+def check_scene_paths(scenes: dict, used: list[str], files: list[str], results: str = "results") -> None:
+    """Each used scene's ``path`` (relative to the working folder): no Snakemake wildcard in it, present
+    unless a rule writes it (a path under ``results``), and never inside the scene's own results
+    (``results/scenes/NAME/``, which its import removes before it reads)."""
+    import re
+
+    out = Path(results).resolve()
+    for name in used:
+        s = scenes[name]
+        if not isinstance(s, dict) or "path" not in s or s.get("source") not in ("ply", "images"):
+            continue
+        p, where = Path(str(s["path"])), f"{source(('scenes', name, 'path'), files)}: scenes.{name}.path"
+        if m := re.search(WILDCARD, str(p)):
+            raise ConfigError(f"{where}: '{m.group()}' in {p} is a wildcard to Snakemake, which would read another "
+                              "file; rename it (or link it under another name)")
+        r = p.resolve()
+        own = out / "scenes" / name
+        if r == own or own in r.parents:
+            raise ConfigError(f"{where}: {p} lies in the scene's own results ({own}), which its import replaces")
+        if out not in r.parents and not p.exists():
+            raise ConfigError(f"{where}: {p} does not exist")
 
 
 def check_sizes(scenes: dict, partitions: dict, used: list[str], contents: list[str], files: list[str],

@@ -90,12 +90,9 @@ def split_regions(split: str, styles: list[str]) -> list[dict]:
 def regions_file(path: Path, styles: list[str], style_paths: list[Path]) -> list[dict]:
     """``--regions FILE``: a YAML list of region entries (wast3d/regions.py) whose ``style`` is the index of a
     style given on the command line (0: the first) or its path -> the entries with the styles' scene names."""
-    import yaml
+    from .config_check import load_yaml
 
-    try:
-        entries = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ValueError(f"{path}: not a regions file ({e})") from None
+    entries = load_yaml(path, "regions file", top=None)
     if not isinstance(entries, list):
         raise ValueError(f"{path}: a YAML list of regions, each {{style: INDEX, <kind>: ...}}")
     out = []
@@ -103,6 +100,10 @@ def regions_file(path: Path, styles: list[str], style_paths: list[Path]) -> list
         if not isinstance(e, dict) or "style" not in e:
             raise ValueError(f"{path}: entry {i} needs 'style' (the index of a style given, or its path)")
         st = e["style"]
+        if isinstance(st, bool):
+            raise ValueError(f"{path}: entry {i}: style {st!r} is a yes/no, not the index or the path of a style given")
+        if isinstance(e.get("labels"), dict) and isinstance(e["labels"].get("path"), str):  # beside the regions file
+            e = {**e, "labels": {**e["labels"], "path": str((Path(path).parent / e["labels"]["path"]).resolve())}}
         if isinstance(st, int) and 0 <= st < len(styles):
             name = styles[st]
         elif isinstance(st, str) and Path(st).resolve() in [Path(p).resolve() for p in style_paths]:
@@ -209,13 +210,13 @@ def plan_config(path: Path, cfg: dict, *scenes: Path) -> ConfigPlan:
         return ConfigPlan("keep", old, "as written")
     if written_unchanged(old):
         return ConfigPlan("write", new, "unedited, rewritten from today's defaults")
-    import yaml
+    from .config_check import ConfigError, load_yaml
 
     try:
-        mine = yaml.safe_load(old)
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: edited, and not valid YAML ({str(e).splitlines()[0]}); fix it, or start over from "
-                         "the defaults with --reset-config (your file is kept beside it as a .bak)") from None
+        mine = load_yaml(path)
+    except ConfigError as e:
+        raise ValueError(f"{e}: edited, and not a config the workflow reads; fix it, or start over from the defaults "
+                         "with --reset-config (your file is kept beside it as a .bak)") from None
     paths = {str(Path(v["path"]).resolve()) for v in ((mine or {}).get("scenes") or {}).values()
              if isinstance(v, dict) and v.get("path")} if isinstance(mine, dict) else set()
     missing = [str(p) for p in (Path(x).resolve() for x in scenes) if str(p) not in paths]
@@ -235,12 +236,39 @@ def backup_path(path: Path) -> Path:
     return out
 
 
-# ---- a run killed before it could unlock its folder ----------------------------------------------
+# ---- one run in a folder at a time ------------------------------------------------------------------
+
+LOCK = ".wast3d-run.lock"  # in OUT: held (flock) by `wast3d run` and, inherited, by the Snakemake it starts
+
+
+def hold_folder(out: Path) -> int:
+    """Take ``out``'s run lock: an exclusive ``flock`` on ``out/.wast3d-run.lock``, as an open descriptor
+    that the Snakemake a run starts inherits. The lock lives as long as either process does (a
+    ``kill -9`` of ``wast3d`` leaves its Snakemake holding it) and no longer (nothing stale to remove).
+    A ValueError names the folder and the holder when another run has it."""
+    import fcntl
+    import os
+    import time
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 256).decode(errors="replace").strip()
+        os.close(fd)
+        raise ValueError(f"{out}: another run works in this folder ({holder or 'a wast3d run'}, or the Snakemake it "
+                         "started, which goes on after a kill of wast3d); wait for it to end or stop it") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"wast3d run, pid {os.getpid()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode())
+    return fd
 
 
 def snakemake_running_in(out: Path) -> list[int]:
-    """PIDs of live Snakemake processes working on folder ``out`` (their working directory, or ``-d``/
-    ``--directory`` naming it), this process's ancestors left out."""
+    """PIDs of live Snakemake processes working on folder ``out``, this process's ancestors left out: its
+    working directory (Snakemake changes into its ``-d`` folder), or ``-d``/``--directory`` naming it
+    (absolute, or relative to that working directory or to ``/``)."""
     import os
 
     import psutil
@@ -253,9 +281,9 @@ def snakemake_running_in(out: Path) -> list[int]:
             cmd = p.info["cmdline"] or []
             if p.info["pid"] in mine or not any("snakemake" in Path(c).name for c in cmd[:3]):
                 continue
-            dirs = [cmd[i + 1] for i, c in enumerate(cmd[:-1]) if c in ("-d", "--directory")]
-            where = [Path(d) if Path(d).is_absolute() else Path(p.info["cwd"] or "/") / d for d in dirs]
-            where = where or [Path(p.info["cwd"] or "/")]
+            cwd = Path(p.info["cwd"] or "/")
+            dirs = [Path(cmd[i + 1]) for i, c in enumerate(cmd[:-1]) if c in ("-d", "--directory")]
+            where = [cwd, *(d if d.is_absolute() else cwd / d for d in dirs)]
             if any(w.resolve() == out for w in where):
                 found.append(p.info["pid"])
         except (psutil.Error, OSError):
@@ -265,6 +293,47 @@ def snakemake_running_in(out: Path) -> list[int]:
 
 def stale_locks(out: Path) -> bool:
     """Whether Snakemake's locks in ``out`` belong to no live process: a run killed (SIGKILL, a power
-    loss) before it could remove them. Then they only stop the next run, which resumes the killed one."""
+    loss) before it could remove them. Then they only stop the next run, which resumes the killed one.
+    Asked by a run that holds :func:`hold_folder`'s lock (no run of ours is alive there), of the
+    Snakemakes started by hand."""
     locks = Path(out) / ".snakemake" / "locks"
     return locks.is_dir() and any(locks.iterdir()) and not snakemake_running_in(out)
+
+
+def inside_results(path: Path, out: Path) -> bool:
+    """Whether ``path`` (links resolved) lies inside what a run in ``out`` writes: ``out/results`` or
+    Snakemake's ``out/.snakemake``."""
+    p = Path(path).resolve()
+    return any(p == d or d in p.parents for d in ((Path(out) / "results").resolve(), (Path(out) / ".snakemake").resolve()))
+
+
+def check_path_text(path: Path, what: str) -> None:
+    """A ValueError for a path the workflow cannot carry: one that is not UTF-8 (Snakemake reads its
+    config as text), or that holds a line break."""
+    text = str(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{ascii(text)}: {what}: the name is not UTF-8 text; rename it") from None
+    if "\n" in text or "\r" in text:
+        raise ValueError(f"{ascii(text)}: {what}: the name holds a line break; rename it")
+    from .config_check import WILDCARD
+
+    if m := re.search(WILDCARD, text):  # Snakemake has no escape for it in an input's path
+        raise ValueError(f"{text}: {what}: '{m.group()}' in the name is a wildcard to Snakemake, which would read "
+                         "another file; rename it (or link it under another name)")
+
+
+
+
+def configfiles(snakemake_args: list[str]) -> list[str]:
+    """The files ``--configfile``/``--configfiles`` names among Snakemake's arguments (``A B`` or ``=A``)."""
+    out, take = [], False
+    for w in snakemake_args:
+        if w.startswith("-"):
+            take = w in ("--configfile", "--configfiles")
+            if "=" in w and w.split("=", 1)[0] in ("--configfile", "--configfiles"):
+                out.append(w.split("=", 1)[1])
+        elif take:
+            out.append(w)
+    return out

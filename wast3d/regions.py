@@ -43,6 +43,8 @@ class Region:
         """A config entry ``{style: NAME, <kind>: {...}}`` (``rest: true``); a ValueError names ``where``."""
         if not isinstance(entry, dict) or "style" not in entry:
             raise ValueError(f"{where}: a region needs 'style' and one of {', '.join(KINDS)}")
+        if not isinstance(entry["style"], str):
+            raise ValueError(f"{where}.style: the name of a style scene, got {entry['style']!r}")
         kinds = [k for k in KINDS if k in entry]
         extra = sorted(set(entry) - {"style", *KINDS})
         if len(kinds) != 1 or extra:
@@ -59,19 +61,31 @@ class Region:
             raise ValueError(f"{where}.{kind}: needs exactly {', '.join(need)}")
         vec = [spec[k] for k in ("min", "max", "normal") if k in spec]
         for v in vec:
-            if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(x, (int, float)) for x in v)
-                    and all(np.isfinite(v))):
+            if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(_number(x) for x in v)):
                 raise ValueError(f"{where}.{kind}: vectors are 3 finite numbers, got {v!r}")
+        if kind == "half_space" and not _number(spec["offset"]):
+            raise ValueError(f"{where}.half_space.offset: a finite number, got {spec['offset']!r}")
+        if kind == "labels" and not isinstance(spec["path"], str):
+            raise ValueError(f"{where}.labels.path: a file name, got {spec['path']!r}")
+        if kind in ("colour", "labels") and isinstance(spec["take"], list) and not all(
+                isinstance(x, int) and not isinstance(x, bool) for x in spec["take"]):
+            raise ValueError(f"{where}.{kind}.take: integers, got {spec['take']!r}")
         if kind == "half_space" and float(np.linalg.norm(spec["normal"])) == 0:
             raise ValueError(f"{where}.half_space.normal: must not be zero")
         if kind == "box" and any(a > b for a, b in zip(spec["min"], spec["max"])):
             raise ValueError(f"{where}.box: min must not exceed max")
         if kind in ("colour", "labels") and not (isinstance(spec["take"], list) and spec["take"]):
             raise ValueError(f"{where}.{kind}.take: a non-empty list")
-        if kind == "colour" and not (isinstance(spec["groups"], int) and 1 <= spec["groups"] <= 64
+        if kind == "colour" and not (isinstance(spec["groups"], int) and not isinstance(spec["groups"], bool)
+                                     and 1 <= spec["groups"] <= 64
                                      and all(isinstance(t, int) and 0 <= t < spec["groups"] for t in spec["take"])):
             raise ValueError(f"{where}.colour: groups 1-64, take ids below it")
         return Region(entry["style"], kind, dict(spec))
+
+
+def _number(x) -> bool:
+    """A finite int or float, not a yes/no (YAML's ``true`` is an int to Python)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
 
 
 def parse_set(entries: list, where: str) -> list[Region]:

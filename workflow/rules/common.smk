@@ -14,6 +14,8 @@ import yaml
 # the config checked before anything else reads it: its size (YAML alias bombs), finite numbers, then
 # the schema, each error one line naming the config file and the key (wast3d/config_check.py)
 _CONFIG_FILES = [str(f) for f in workflow.configfiles]
+for _f in _CONFIG_FILES:  # Snakemake's loader keeps the last of a key given twice, without a word
+    _CHECK.check_yaml_file(_f)
 _CHECK.check_size(config, f"config ({', '.join(_CONFIG_FILES) or '--config'})")
 # the one required key a scene's `source` alone does not say, named before the schema's whole-oneOf message
 for _name, _s in (config.get("scenes") or {}).items():
@@ -278,6 +280,8 @@ def stage_args(command, ignore=(), **paths):
 USED_SCENES = [s for s in SCENES if any(s in p for p in PAIRS + TABLE1_PAIRS)
                or any(r["content"] == s for r in REGION_SETS.values())]
 USED_SCENES += [src for s in USED_SCENES if (src := SCENES[s].get("labels_from")) and src not in USED_SCENES]
+
+_CHECK.check_scene_paths(SCENES, USED_SCENES, _CONFIG_FILES, RESULTS)
 
 # say what is left out, and why
 for _name, _s in SCENES.items():
