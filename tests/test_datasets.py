@@ -88,5 +88,5 @@ def test_bad_datasets(tmp_path):
     meta = json.loads((d / "transforms_train.json").read_text())
     meta["frames"][0]["transform_matrix"] = [[1, 0], [0, 1]]
     (d / "transforms_train.json").write_text(json.dumps(meta))
-    with pytest.raises(DatasetError, match=r"frames\[0\]\.transform_matrix must be a finite 4x4"):
+    with pytest.raises(DatasetError, match=r"frames\[0\]\.transform_matrix: must be a 4x4 matrix"):
         load_blender(d)

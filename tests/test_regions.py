@@ -47,7 +47,7 @@ def test_the_first_region_that_claims_a_point_wins_and_every_point_needs_one():
 def test_label_files_are_checked_against_the_scene(tmp_path):
     np.save(tmp_path / "l.npy", np.array([0, 1, 1]))
     assert read_labels(str(tmp_path / "l.npy"), 3).tolist() == [0, 1, 1]
-    with pytest.raises(ValueError, match="3 labels for a scene of 4 Gaussians"):
+    with pytest.raises(ValueError, match="3 labels of type int64 for a scene of 4 Gaussians"):
         read_labels(str(tmp_path / "l.npy"), 4)
     (tmp_path / "l.txt").write_text("0\n2\nx\n")
     with pytest.raises(ValueError, match="not a label file"):

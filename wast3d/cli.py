@@ -322,11 +322,9 @@ def cmd_export(sub):
     return run
 
 
-LIMITS = {"views": 1024, "size": 16384}  # a render command's bounds (the config schema's for its keys)
-
-
-def render_command(name: str, help_: str, fn: str, views: int, size: int, out_help: str):
-    """A command that renders a PLY from orbit cameras with ``render.<fn>(scene, out, views, size)``."""
+def render_command(name: str, help_: str, fn: str, views: int, size: int, out_help: str, limits: dict[str, int]):
+    """A command that renders a PLY from orbit cameras with ``render.<fn>(scene, out, views, size)``;
+    ``limits`` bounds ``--views`` and ``--size`` (what one picture, or one view at a time, can hold)."""
 
     @command(name, help_)
     def cmd(sub):
@@ -342,8 +340,8 @@ def render_command(name: str, help_: str, fn: str, views: int, size: int, out_he
 
             not_an_input(a.out, a.ply)
             for opt in ("views", "size"):
-                if not 1 <= getattr(a, opt) <= LIMITS[opt]:
-                    raise ValueError(f"{name}: --{opt} {getattr(a, opt)}: must be 1-{LIMITS[opt]}")
+                if not 1 <= getattr(a, opt) <= limits[opt]:
+                    raise ValueError(f"{name}: --{opt} {getattr(a, opt)}: must be 1-{limits[opt]}")
             getattr(render, fn)(read_scene(a.ply, a.drop_invalid), a.out, a.views, a.size)
             return 0
 
@@ -352,9 +350,11 @@ def render_command(name: str, help_: str, fn: str, views: int, size: int, out_he
     return cmd
 
 
-render_command("preview", "render a 1 x N grid of orbit views of a PLY", "save_preview", 4, 256, "PNG file")
+render_command("preview", "render a 1 x N grid of orbit views of a PLY", "save_preview", 4, 256, "PNG file",
+               {"views": 16, "size": 2048})  # the config schema's bounds of preview.views and preview.size
 render_command("export-views", "render a PLY into a Blender-format posed image set (orbit cameras)",
-               "export_blender", 48, 200, "output folder (transforms_train.json + train/*.png)")
+               "export_blender", 48, 200, "output folder (transforms_train.json + train/*.png)",
+               {"views": 1024, "size": 4096})
 
 
 # ---- the stylization stages -----------------------------------------------------------------
@@ -423,7 +423,7 @@ def columns_command(name: str, help_: str, out: str, fn: str):
             from . import figures
 
             cols = _columns(a.columns, name)
-            not_an_input(getattr(a, out), *(p for _, p in cols))
+            output_file(getattr(a, out), *(p for _, p in cols))
             getattr(figures, fn)(cols, getattr(a, out))
 
         return run

@@ -63,18 +63,25 @@ def _resolve_image(root: Path, file_path: str) -> Path:
 
 
 def load_image(path: Path, background: tuple[float, float, float]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Read an image -> (rgb composited on background [H, W, 3], alpha [H, W]), float32 in [0, 1]."""
-    if not path.exists():
-        raise DatasetError(f"{path}: image file not found")
+    """Read an image -> (rgb composited on background [H, W, 3], alpha [H, W]), float32 in [0, 1].
+    Grey, grey + alpha, RGB and RGBA are read; anything else is a DatasetError naming the file."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: image file not found" if not path.exists() else f"{path}: not an image file")
     try:
         a = iio.imread(path)
     except Exception as e:
         raise DatasetError(f"{path}: cannot read image ({e})") from None
     a = np.asarray(a)
+    if a.dtype.kind not in "uif" or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[-1] not in (1, 2, 3, 4)) \
+            or min(a.shape[:2]) < 1:
+        raise DatasetError(f"{path}: an image of shape {a.shape} and type {a.dtype}; expected grey, grey + alpha, RGB "
+                           "or RGBA")
     scale = 65535.0 if a.dtype == np.uint16 else 255.0 if a.dtype == np.uint8 else 1.0
     a = a.astype(np.float32) / scale
     if a.ndim == 2:
-        a = np.repeat(a[..., None], 3, axis=-1)
+        a = a[..., None]
+    if a.shape[-1] in (1, 2):  # grey (+ alpha): the grey on three channels
+        a = np.concatenate([np.repeat(a[..., :1], 3, axis=-1), a[..., 1:]], axis=-1)
     rgb = a[..., :3]
     alpha = a[..., 3] if a.shape[-1] == 4 else np.ones(a.shape[:2], np.float32)
     bg = np.asarray(background, np.float32)
@@ -82,26 +89,56 @@ def load_image(path: Path, background: tuple[float, float, float]) -> tuple[torc
     return torch.from_numpy(np.ascontiguousarray(rgb)), torch.from_numpy(np.ascontiguousarray(alpha))
 
 
+def _number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _matrix(value, where: str) -> torch.Tensor:
+    """A frame's ``transform_matrix``: 4 rows of 4 finite numbers, an invertible camera-to-world."""
+    if not (isinstance(value, list) and len(value) == 4 and all(
+            isinstance(r, list) and len(r) == 4 and all(_number(x) for x in r) for r in value)):
+        raise DatasetError(f"{where}: must be a 4x4 matrix of numbers (4 lists of 4), got {str(value)[:80]}")
+    m = torch.tensor(value, dtype=torch.float64)
+    if not torch.isfinite(m).all():
+        raise DatasetError(f"{where}: must be a finite 4x4 matrix (it holds NaN or infinity)")
+    r = m[:3, :3]
+    if abs(float(torch.linalg.det(r))) <= 1e-9 * max(float(r.abs().max()), 1e-300) ** 3 or \
+            not torch.allclose(m[3], torch.tensor([0.0, 0, 0, 1], dtype=torch.float64)):
+        raise DatasetError(f"{where}: not a camera pose (its rotation part is singular, or its last row is not 0 0 0 1)")
+    return m
+
+
 def load_blender(root: str | Path, split: str = "train", holdout_every: int = 8,
                  background: tuple[float, float, float] = (1.0, 1.0, 1.0), max_views: int | None = None) -> Dataset:
     """Load ``transforms_<split>.json`` and its images; every ``holdout_every``-th view (0, k, 2k, ...)
-    goes to the test set (0 disables hold-out).
+    goes to the test set (0 disables hold-out; too few views to hold one out and train on the rest:
+    none is held out, and the log says so).
 
-    Errors (:class:`DatasetError`) name the file and field: missing JSON, invalid JSON, missing
-    ``camera_angle_x``/``frames``/``transform_matrix``/``file_path``, a matrix that is not 4x4, a
-    missing image, images of different sizes.
+    Errors (:class:`DatasetError`) name the file and field: missing JSON, invalid JSON or not an object,
+    ``camera_angle_x`` missing or not a number in (0, pi), ``frames`` missing or empty, a frame that is
+    not an object, a ``file_path`` that is not a string, a ``transform_matrix`` that is not 4x4 numbers,
+    not finite or not invertible, a missing or unreadable image, images of different sizes. A
+    ``file_path`` leaving the dataset's folder is read, with a warning.
     """
+    import math
+
     root = Path(root)
     jpath = root / f"transforms_{split}.json"
-    if not jpath.exists():
+    if not jpath.is_file():
         raise DatasetError(f"{jpath}: file not found")
     try:
-        meta = json.loads(jpath.read_text())
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{jpath}: invalid JSON ({e})") from None
+        meta = json.loads(jpath.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
+        raise DatasetError(f"{jpath}: invalid JSON ({str(e)[:200]})") from None
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{jpath}: must be a JSON object with 'camera_angle_x' and 'frames', not a {type(meta).__name__}")
     for key in ("camera_angle_x", "frames"):
         if key not in meta:
             raise DatasetError(f"{jpath}: missing field '{key}'")
+    fov = meta["camera_angle_x"]
+    if not _number(fov) or not 0 < fov < math.pi:
+        raise DatasetError(f"{jpath}: field 'camera_angle_x': {fov!r}; the horizontal field of view in radians, "
+                           "a number between 0 and pi")
     frames = meta["frames"]
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{jpath}: field 'frames' must be a non-empty list")
@@ -109,24 +146,35 @@ def load_blender(root: str | Path, split: str = "train", holdout_every: int = 8,
         frames = frames[:max_views]
     views: list[View] = []
     size = None
+    inside = root.resolve()
     for i, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            raise DatasetError(f"{jpath}: frames[{i}] must be an object with 'file_path' and 'transform_matrix', "
+                               f"not {str(fr)[:40]}")
         for key in ("file_path", "transform_matrix"):
             if key not in fr:
                 raise DatasetError(f"{jpath}: frames[{i}] missing field '{key}'")
-        m = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
-        if m.shape != (4, 4) or not torch.isfinite(m).all():
-            raise DatasetError(f"{jpath}: frames[{i}].transform_matrix must be a finite 4x4 matrix")
+        if not isinstance(fr["file_path"], str) or not fr["file_path"]:
+            raise DatasetError(f"{jpath}: frames[{i}].file_path must be a file name, not {fr['file_path']!r}")
+        m = _matrix(fr["transform_matrix"], f"{jpath}: frames[{i}].transform_matrix")
         ipath = _resolve_image(root, fr["file_path"])
+        if inside not in ipath.resolve().parents:
+            log.warning("%s: frames[%d].file_path %r lies outside the dataset's folder %s (read all the same)", jpath,
+                        i, fr["file_path"], root)
         rgb, alpha = load_image(ipath, background)
         h, w = rgb.shape[:2]
         if size is None:
             size = (h, w)
         elif (h, w) != size:
             raise DatasetError(f"{ipath}: image size {w}x{h} differs from the first frame's {size[1]}x{size[0]}")
-        cam = camera_from_blender(m, float(meta["camera_angle_x"]), w, h, name=Path(fr["file_path"]).name)
+        cam = camera_from_blender(m, float(fov), w, h, name=Path(fr["file_path"]).name)
         views.append(View(cam, rgb, alpha, cam.name))
-    test = [v for i, v in enumerate(views) if holdout_every and i % holdout_every == 0]
-    train = [v for i, v in enumerate(views) if not (holdout_every and i % holdout_every == 0)]
+    held = {i for i in range(len(views)) if holdout_every and i % holdout_every == 0}
+    if len(held) == len(views):
+        log.warning("%s: %d view(s): too few to hold one out and train on the rest; none held out", jpath, len(views))
+        held = set()
+    test = [v for i, v in enumerate(views) if i in held]
+    train = [v for i, v in enumerate(views) if i not in held]
     log.info("%s: %d train / %d held-out views at %dx%d", root, len(train), len(test), size[1], size[0])
     return Dataset(train, test, tuple(background), root)
 

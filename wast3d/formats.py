@@ -10,7 +10,9 @@ and ``.splat``, the format of the common web viewers (antimatter15/splat and tho
     r g b a          uint8 x 4     DC colour 0.5 + C0 f_dc, and opacity sigmoid(logit), times 255
     q_w q_x q_y q_z  uint8 x 4     unit quaternion, q * 128 + 128
 
-It keeps the view-independent colour only: a scene with SH degree > 0 is written at degree 0 (the
+The format has no count: a size that is no whole number of 32-byte records is refused as truncated,
+but a file cut exactly at a record's end cannot be told from a smaller scene. It keeps the
+view-independent colour only: a scene with SH degree > 0 is written at degree 0 (the
 log says so), colours and opacities are quantized to 1/255 (colours clamped to [0, 1]) and rotations
 to 1/128. Element labels are not kept.
 """
@@ -40,14 +42,18 @@ def _format(path: Path) -> str:
 
 
 def read_scene(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
-    """The scene in ``path``, by its extension (module docstring)."""
+    """The scene a user gives in ``path``, by its extension (module docstring); one of no Gaussians is a
+    PlyError."""
     from .spz import read_spz
 
     path = Path(path)
     ext = _format(path)
     if ext == ".splat":
         return read_splat(path, drop_invalid)
-    return (read_spz if ext == ".spz" else read_ply)(path, drop_invalid=drop_invalid)
+    scene = (read_spz if ext == ".spz" else read_ply)(path, drop_invalid=drop_invalid)
+    if len(scene) == 0:  # a stage's own PLY may hold none; a scene a user gives is something to stylize
+        raise PlyError(f"{path}: holds no Gaussians (its count is 0): not a scene to read")
+    return scene
 
 
 def write_scene(path: str | Path, scene: GaussianScene) -> None:

@@ -24,9 +24,14 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     owner-only ones of a temporary file: results are read by others on a shared cluster.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
-                               dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
+                                   dir=path.parent)
+    except OSError as e:  # a read-only folder, a file where a folder should be: named as the file to write
+        up = next((a for a in path.parents if a.exists()), None)
+        why = f"{up} is a file, not a folder" if up is not None and not up.is_dir() else e.strerror
+        raise OSError(e.errno, f"cannot be written ({why})", str(path)) from None
     os.close(fd)
     tmp = Path(tmp)
     try:

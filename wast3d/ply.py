@@ -94,9 +94,12 @@ def checked(scene: GaussianScene, path: str | Path, drop_invalid: bool = False, 
     return scene
 
 
-def check_writable(scene: GaussianScene, path: str | Path, what: str, dtype=torch.float32) -> None:
+def check_writable(scene: GaussianScene, path: str | Path, what: str, dtype=torch.float32, empty: bool = False) -> None:
     """A writer refuses what its format cannot hold: a value that is not finite in ``dtype`` (3e38 x 10
-    in a float32 file), named by field and row, as :func:`checked` names them when reading."""
+    in a float32 file), named by field and row, as :func:`checked` names them when reading; and a scene
+    of no Gaussians unless ``empty`` (a stage's PLY may hold none; the exchange formats may not)."""
+    if len(scene) == 0 and not empty:
+        raise ValueError(f"{path}: {what} holds at least one Gaussian; this scene has none")
     s = scene.detach().to(device="cpu", dtype=dtype) if dtype is not None else scene
     for name, bad in _bad_rows(s).items():
         if bad.any():
@@ -124,7 +127,7 @@ def scene_to_array(scene: GaussianScene) -> np.ndarray:
 
 def write_ply(path: str | Path, scene: GaussianScene) -> None:
     """Write ``scene`` as a binary little-endian 3DGS PLY, atomically (temporary file, then rename)."""
-    check_writable(scene, path, "a PLY")
+    check_writable(scene, path, "a PLY", empty=True)
     names = property_names(scene.sh_degree)
     arr = scene_to_array(scene)
     dtype = [(n, "<f4") for n in names]
@@ -152,10 +155,32 @@ def write_compressed_ply(path: str | Path, scene: GaussianScene) -> None:
         PlyData([PlyElement.describe(r, name) for name, r in rec.items()], text=False, byte_order="<").write(str(tmp))
 
 
+MAX_HEADER = 1 << 20  # a 3DGS PLY's header is a few kilobytes; plyfile would read any length line by line
+
+
+def _header_length(path: Path) -> int:
+    """The bytes of ``path``'s header up to its data; a PlyError when no ``end_header`` line ends within
+    MAX_HEADER bytes (or the file is not a PLY)."""
+    with open(path, "rb") as f:
+        head = f.read(MAX_HEADER + 16)
+    if not head.startswith(b"ply"):
+        raise PlyError(f"{path}: not a PLY file (it does not start with 'ply')")
+    at = head.find(b"end_header")
+    if at < 0 or at > MAX_HEADER:
+        raise PlyError(f"{path}: no 'end_header' within the first {MAX_HEADER >> 20} MiB: "
+                       + ("the header is longer than any scene's (a huge comment?)" if len(head) > MAX_HEADER else
+                          "truncated inside its header"))
+    start = at + len(b"end_header")
+    return start + (2 if head[start:start + 2] == b"\r\n" else 1)
+
+
 def _read_vertex(path: Path):
     """(vertex element, its property names, the whole PlyData)."""
     if not path.exists():
         raise FileNotFoundError(f"{path}: file not found")
+    if not path.is_file():
+        raise PlyError(f"{path}: not a file")
+    _header_length(path)
     try:
         ply = PlyData.read(str(path))
     except Exception as e:  # plyfile raises several types for truncated/corrupt data
@@ -169,25 +194,23 @@ def _read_vertex(path: Path):
 
 def _check_length(path: Path, ply) -> None:
     """A binary PLY's data must be exactly what its header's counts say: more bytes are rows the header
-    does not count (a reader would drop them without a word), fewer a truncated file. Elements with list
-    properties have no fixed size and are not checked."""
+    does not count (a reader would drop them without a word), fewer a truncated file. An element with
+    list properties (a mesh's faces) counts each row's lists as read."""
     from plyfile import PlyListProperty
 
-    if ply.text or any(isinstance(p, PlyListProperty) for el in ply.elements for p in el.properties):
+    if ply.text:
         return
-    with open(path, "rb") as f:
-        head = b""
-        while b"end_header" not in head and len(head) < (1 << 24):
-            block = f.read(1 << 16)
-            if not block:
-                return  # plyfile read it, so this cannot happen; no header end: nothing to compare
-            head += block
-    start = head.index(b"end_header") + len(b"end_header")
-    start += 2 if head[start:start + 2] == b"\r\n" else 1
-    data = path.stat().st_size - start
-    expect = sum(el.count * el.dtype().itemsize for el in ply.elements)
+    data = path.stat().st_size - _header_length(path)
+    expect = 0
+    for el in ply.elements:
+        lists = [p for p in el.properties if isinstance(p, PlyListProperty)]
+        fixed = sum(np.dtype(p.dtype()).itemsize for p in el.properties if not isinstance(p, PlyListProperty))
+        expect += el.count * fixed
+        for p in lists:
+            lengths = np.fromiter((len(r) for r in el.data[p.name]), np.int64, el.count)
+            expect += el.count * np.dtype(p.list_dtype()[0]).itemsize + int(lengths.sum()) * np.dtype(p.list_dtype()[1]).itemsize
     if data != expect:
-        counts = ", ".join(f"'{el.name}' {el.count} rows of {el.dtype().itemsize} bytes" for el in ply.elements)
+        counts = ", ".join(f"'{el.name}' {el.count} rows" for el in ply.elements)
         raise PlyError(f"{path}: the header's element counts ({counts}) describe {expect} bytes of data, the file holds "
                        f"{data}: {'more rows than the header counts' if data > expect else 'truncated'}")
 
@@ -274,6 +297,8 @@ def _read_compressed(path: Path, ply, drop_invalid: bool = False) -> GaussianSce
 
 
 def _read_point_cloud(path: Path, v, names: list[str], drop_invalid: bool) -> GaussianScene:
+    if v.count == 0:
+        return GaussianScene.empty()
     xyz = np.stack([_column(v, path, p) for p in ("x", "y", "z")], 1).astype(np.float32)
     if all(c in names for c in ("red", "green", "blue")):
         rgb = np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], 1)

@@ -153,10 +153,25 @@ def read_labels(path: str, count: int) -> np.ndarray:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"{p}: label file not found")
+    if not p.is_file():
+        raise ValueError(f"{p}: not a label file (not a regular file)")
+    if p.suffix == ".npy":  # its header first: a count or type that does not fit is refused before reading
+        try:
+            with open(p, "rb") as f:
+                major, _ = np.lib.format.read_magic(f)
+                read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(f, max_header_size=1 << 16)
+        except (ValueError, OSError, SyntaxError) as e:
+            raise ValueError(f"{p}: not a .npy label file ({e})") from None
+        if dtype.kind not in "iu" or int(np.prod(shape, dtype=np.float64)) != count:
+            raise ValueError(f"{p}: header: {int(np.prod(shape, dtype=np.float64))} labels of type {dtype} for a scene of "
+                             f"{count} Gaussians (one integer per Gaussian, in its order)")
+    elif p.stat().st_size > 32 * (count + 1):
+        raise ValueError(f"{p}: {p.stat().st_size} bytes is more text than {count} labels hold")
     try:
         lab = np.load(p, allow_pickle=False) if p.suffix == ".npy" else np.loadtxt(p, dtype=np.int64, ndmin=1)
     except (ValueError, OSError) as e:
-        raise ValueError(f"{p}: not a label file ({e})") from None
+        raise ValueError(f"{p}: not a label file ({str(e)[:200]})") from None
     lab = np.asarray(lab).reshape(-1)
     if not np.issubdtype(lab.dtype, np.integer):
         raise ValueError(f"{p}: labels must be integers, got {lab.dtype}")

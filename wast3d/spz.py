@@ -229,7 +229,7 @@ def read_spz(path: str | Path, drop_invalid: bool = False) -> GaussianScene:
         if len(data) < HEADER.size:
             raise PlyError(f"{path}: SPZ header: {len(data)} bytes, need {HEADER.size} (not an SPZ file?)")
         magic, version, n, deg, bits, flags, streams, toc = HEADER.unpack_from(data)
-        _check_header(path, magic, version, n, deg, legacy=False)
+        _check_header(path, magic, version, n, deg, legacy=False, bits=bits)
         arrays = _zstd_arrays(path, data, n, deg, version, streams, toc)
         if flags & FLAG_EXTENSIONS:
             log.info("%s: SPZ extensions (%d bytes) skipped", path, toc - HEADER.size)
@@ -254,8 +254,8 @@ def _inflate_legacy(path: Path, data: bytes) -> tuple[bytearray, int, int]:
     if len(head) < LEGACY_HEADER.size:
         raise PlyError(f"{path}: SPZ: the gzip stream ends after {len(head)} bytes, inside its {LEGACY_HEADER.size}-byte "
                        "header (truncated?)")
-    magic, version, n, deg, _, flags, _ = LEGACY_HEADER.unpack_from(head)
-    _check_header(path, magic, version, n, deg, legacy=True)
+    magic, version, n, deg, bits, flags, _ = LEGACY_HEADER.unpack_from(head)
+    _check_header(path, magic, version, n, deg, legacy=True, bits=bits)
     need = LEGACY_HEADER.size + sum(size for _, size in _sizes(n, deg, version))
     out = bytearray(head)
     while len(out) < need:
@@ -276,7 +276,10 @@ def _inflate_legacy(path: Path, data: bytes) -> tuple[bytearray, int, int]:
     return out, flags, extra
 
 
-def _check_header(path: Path, magic: int, version: int, n: int, deg: int, legacy: bool) -> None:
+MAX_FRACTIONAL_BITS = 23  # positions are 24-bit signed fixed point: more fractional bits leave no integer part
+
+
+def _check_header(path: Path, magic: int, version: int, n: int, deg: int, legacy: bool, bits: int) -> None:
     if magic != MAGIC:
         raise PlyError(f"{path}: SPZ header 'magic': {magic:#010x}, expected {MAGIC:#010x} (not an SPZ file)")
     if not (1 <= version <= 3 if legacy else version == 4):
@@ -285,6 +288,9 @@ def _check_header(path: Path, magic: int, version: int, n: int, deg: int, legacy
                           "Zstandard container, which holds version 4 (versions 1-3 are gzip streams)"))
     if n == 0:
         raise PlyError(f"{path}: SPZ header 'numPoints': 0 Gaussians")
+    if version >= 2 and bits > MAX_FRACTIONAL_BITS:  # version 1 stores float16 positions
+        raise PlyError(f"{path}: SPZ header 'fractionalBits': {bits}; 24-bit fixed-point positions hold 0-"
+                       f"{MAX_FRACTIONAL_BITS} (12 is usual)")
     if deg not in SH_DIM:
         raise PlyError(f"{path}: SPZ header 'shDegree': {deg} (known: 0-4)")
     need = sum(size for _, size in _sizes(n, deg, version)) + n * (DECODED_BYTES + 12 * SH_DIM[deg])

@@ -67,10 +67,122 @@ def view_camera(width: int, height: int) -> Camera:
     return Camera(look_at(VIEW_EYE, (0.0, 0.0, 0.0)), f, f, width / 2, height / 2, width, height, name="view")
 
 
+LOOPBACK = ("localhost", "127.0.0.1", "::1")
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+
+
+def allowed_hosts(host: str) -> set[str] | None:
+    """The names a request's ``Host`` may give for a server bound to ``host``: the loopback names, and
+    ``host`` itself when it is another address; None (any name) when ``host`` opens every interface."""
+    return None if host in WILDCARD_HOSTS else {*LOOPBACK, host.strip("[]").lower()}
+
+
+def _hostname(value: str) -> str:
+    """``example.org:8080`` -> ``example.org``; ``[::1]:8080`` -> ``::1``; lower case."""
+    v = value.strip().lower()
+    if v.startswith("["):
+        return v[1:v.index("]")] if "]" in v else v
+    return v.rsplit(":", 1)[0] if v.count(":") == 1 else v
+
+
+def refusal(headers, hosts: set[str] | None) -> str | None:
+    """Why a request (its ``headers``: ``get(name)``) is refused, or None. ``Host`` must be one of
+    ``hosts`` (a page of another site that rebinds its name to this machine gives its own name); an
+    ``Origin``, which a browser sends with every websocket, must name a host of ``hosts`` too (with
+    ``hosts`` None: the ``Host`` itself, so a page is served to its own origin only)."""
+    host = headers.get("Host")
+    if host is None:
+        return "no Host header"
+    name = _hostname(host)
+    if hosts is not None and name not in hosts:
+        return f"Host {host!r} is not this viewer's ({', '.join(sorted(hosts))})"
+    origin = headers.get("Origin")
+    if origin is not None:
+        from urllib.parse import urlsplit
+
+        try:
+            oname = (urlsplit(origin).hostname or "").lower()
+        except ValueError:
+            oname = ""
+        if oname not in (hosts if hosts is not None else {name}):
+            return f"Origin {origin!r} is another site"
+    return None
+
+
+def check_serve_args(host: str, port: int, max_gaussians: int | None) -> None:
+    """ValueErrors for arguments the server cannot start with, before it starts: a port outside 0-65535
+    (0: any free one), ``max_gaussians`` under 1, a host that is no address of this machine (an
+    address literal that does not parse, a name that does not resolve in 5 s, or one it cannot listen
+    on, named with the system's reason)."""
+    import ipaddress
+    import socket
+    from concurrent.futures import ThreadPoolExecutor, TimeoutError as Timeout
+
+    if not 0 <= port <= 65535:
+        raise ValueError(f"view: --port {port}: must be 0-65535 (0: any free port)")
+    if max_gaussians is not None and max_gaussians < 1:
+        raise ValueError(f"view: --max-gaussians {max_gaussians}: must be at least 1")
+    if host.replace(".", "").isdigit() or ":" in host:
+        try:
+            ipaddress.ip_address(host.strip("[]"))
+        except ValueError:
+            raise ValueError(f"view: --host {host}: not an IP address") from None
+    pool = ThreadPoolExecutor(1)
+    try:
+        infos = pool.submit(socket.getaddrinfo, host.strip("[]") or None, port, type=socket.SOCK_STREAM).result(5)
+    except Timeout:
+        raise ValueError(f"view: --host {host}: the name did not resolve within 5 s") from None
+    except socket.gaierror as e:
+        raise ValueError(f"view: --host {host}: {e.strerror}") from None
+    finally:
+        pool.shutdown(wait=False)
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+        except OSError as e:
+            raise ValueError(f"view: cannot listen on {host}:{port} ({e.strerror})") from None
+
+
+def guarded(host: str):
+    """A context in which viser's server checks every request with :func:`refusal` (403 when refused):
+    viser 1.1.1 has no hook for it, so ``websockets.asyncio.server.serve``, which its server thread
+    calls once while :class:`viser.ViserServer` is made, is wrapped for that call alone."""
+    import contextlib
+    import http
+
+    import websockets.asyncio.server as ws
+
+    hosts = allowed_hosts(host)
+    real = ws.serve
+
+    def serve_checked(*args, process_request=None, **kw):
+        def check(connection, request):
+            why = refusal(request.headers, hosts)
+            if why is not None:
+                log.warning("view: refused a request: %s", why)
+                return connection.respond(http.HTTPStatus.FORBIDDEN, f"refused: {why}\n")
+            return process_request(connection, request) if process_request is not None else None
+
+        return real(*args, process_request=check, **kw)
+
+    @contextlib.contextmanager
+    def ctx():
+        ws.serve = serve_checked
+        try:
+            yield
+        finally:
+            ws.serve = real
+
+    return ctx()
+
+
 def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaussians: int | None = 300_000,
           drop_invalid: bool = False):
     """Start a viser server showing the scenes in ``paths`` one at a time (a dropdown switches);
-    returns the server (it runs in threads).
+    returns the server (it runs in threads). Its arguments are checked first (:func:`check_serve_args`),
+    and every request's ``Host`` and ``Origin`` (:func:`refusal`): a page of another site gets nothing.
 
     One splat object is in the scene at a time: with viser 1.1.1 in headless Chromium (software
     WebGL) only the last of several splat objects was drawn, so switching replaces the object.
@@ -79,8 +191,13 @@ def serve(paths: list[Path], host: str = "127.0.0.1", port: int = 8080, max_gaus
 
     from .formats import read_scene
 
+    check_serve_args(host, port, max_gaussians)
     scenes = {f"{i}: {Path(p).name}": read_scene(p, drop_invalid) for i, p in enumerate(paths)}
-    server = viser.ViserServer(host=host, port=port, verbose=False)
+    with guarded(host):
+        server = viser.ViserServer(host=host, port=port, verbose=False)
+    if port and server.get_port() != port:  # viser moves on to the next port when one is taken
+        server.stop()
+        raise ValueError(f"view: cannot listen on {host}:{port} (taken)")
     server.scene.set_up_direction("+z")
     server.initial_camera.look_at = (0.0, 0.0, 0.0)
     server.initial_camera.up = (0.0, 0.0, 1.0)
