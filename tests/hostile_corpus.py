@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-MEMORY_LIMIT = 1 << 30  # bytes a case may add to the runner's resident memory
+MEMORY_LIMIT = 2 << 30  # bytes a case may add to the resident memory of the runner and its children (a dry run
+# of the workflow imports torch to read a scene: 0.8 GB)
 HARD_LIMIT = 6 << 30  # address space the runner may add at all: past it an allocation fails, not the machine
 TIME_LIMIT = 60  # seconds a case may take (each takes under 6 here); past it the case is stopped
 
@@ -235,6 +236,8 @@ def make_inputs(d: Path) -> None:
     (inp / "unknown_key.yaml").write_text("experiments:\n  default:\n    stylize:\n      lrr: 0.1\n")
     (inp / "missing_scene.yaml").write_text(f"scenes:\n  ghost: {{source: ply, path: {inp}/nothing.ply}}\n"
                                             "pairs: [[ghost, pebbles]]\ntable1: {pairs: [[ghost, pebbles]]}\n")
+    (inp / "own_results.yaml").write_text("scenes:\n  ghost: {source: ply, path: results/scenes/ghost/scene.ply}\n"
+                                          "pairs: [[ghost, pebbles]]\ntable1: {pairs: [[ghost, pebbles]]}\n")
     (inp / "regions_offset.yaml").write_text("- {style: 0, half_space: {normal: [0, 0, 1], offset: abc}}\n- {style: 1, rest: true}\n")
     (inp / "regions_bool.yaml").write_text("- {style: true, box: {min: [0, 0, 0], max: [1, 1, 1]}}\n- {style: 1, rest: true}\n")
     (inp / "regions_boolbox.yaml").write_text("- {style: 0, box: {min: [false, 0, 0], max: [true, 1, 1]}}\n- {style: 1, rest: true}\n")
@@ -366,7 +369,7 @@ def cases() -> list[Case]:
                                                      "--configfile", f"{{d}}/inp/{f}"), False, names))
     for f, names in (("dup.yaml", "given twice"), ("alias_bomb.yaml", "more than 100000 values"),
                      ("preview_size.yaml", "preview.size"), ("preview_views.yaml", "preview.views"),
-                     ("lr_inf.yaml", "finite"), ("unknown_key.yaml", "lrr"), ("missing_scene.yaml", "scenes.ghost.path")):
+                     ("lr_inf.yaml", "finite"), ("own_results.yaml", "the scene's own results"), ("unknown_key.yaml", "lrr"), ("missing_scene.yaml", "scenes.ghost.path")):
         out.append(Case(f"snakemake --configfile {f}", (*SNAKEMAKE, f"{{d}}/inp/{f}"), False, names, tool="snakemake"))
     return out
 

@@ -43,7 +43,7 @@ def faults(monkeypatch):
                     with open(a.path, "ab") as f:
                         f.write(b"x")
                 if kind == "memory":
-                    big = np.ones(3 << 27)  # 3 GiB, touched
+                    big = np.ones(3 << 27)  # 3 GiB, touched: past MEMORY_LIMIT
                     import time
 
                     time.sleep(0.2)

@@ -341,3 +341,75 @@ def test_config_bombs_and_bad_values_stop_at_once_naming_the_file_and_key(tmp_pa
     for (text, message), (r, files) in zip(cases.items(), runs):
         assert r.returncode != 0 and f"config {files[0]}: {message}" in r.stderr, (text, r.stderr[-1500:])
         assert len(r.stderr) < 2000  # one message, not the config printed back
+
+
+# ---- one run in a folder, and what a run reports -------------------------------------------------------
+
+
+def _wait_for(cond, seconds=60.0):
+    import time
+
+    t = time.monotonic()
+    while not cond():
+        assert time.monotonic() - t < seconds, "timed out waiting"
+        time.sleep(0.05)
+
+
+def test_a_run_after_a_kill_of_wast3d_is_refused_while_its_snakemake_works(tmp_path):
+    """The folder lock is the wast3d process's, inherited by its Snakemake: kill -9 of wast3d leaves it held
+    (a second run is refused, naming the holder), the end of that Snakemake frees it (a third run works);
+    the result of a run given targets of its own is not reported as built."""
+    import signal
+
+    import psutil
+
+    c, s = tmp_path / "blob.ply", tmp_path / "peb.ply"
+    write_ply(c, random_scene(3000, seed=1))
+    write_ply(s, random_scene(300, seed=2))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "wast3d", "run", str(c), str(s), str(out), "--", "results/scenes/blob/preview.png",
+           "results/scenes/peb/preview.png", "results/scenes/blob/surface.ply"]
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    me = psutil.Process(first.pid)
+    _wait_for(lambda: any("snakemake" in " ".join(p.cmdline()) for p in me.children()))
+    smk = next(p for p in me.children() if "snakemake" in " ".join(p.cmdline()))
+    first.send_signal(signal.SIGKILL)
+    first.wait()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    alive = smk.is_running()
+    assert alive, "the orphaned Snakemake ended before the second run looked: make its jobs longer"
+    assert r.returncode == 2 and "another run works in this folder" in r.stderr and f"pid {first.pid}" in r.stderr, r.stderr
+    smk.wait(300)
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "is not built" in r.stderr and "done. Result" not in r.stderr
+
+
+def test_a_live_snakemake_in_the_folder_is_found_whatever_its_d(tmp_path):
+    """Snakemake changes into its -d folder: a relative -d is found by the process's working folder."""
+    from wast3d.quickstart import snakemake_running_in
+
+    out = tmp_path / "out"
+    out.mkdir()
+    fake = tmp_path / "bin" / "snakemake"
+    fake.parent.mkdir()
+    fake.write_text("import os, sys, time\nos.chdir(sys.argv[2])\nprint('ready', flush=True)\ntime.sleep(60)\n")
+    p = subprocess.Popen([sys.executable, str(fake), "-d", "out"], cwd=tmp_path, stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "ready"
+        assert snakemake_running_in(out) == [p.pid]
+        assert snakemake_running_in(tmp_path) == []
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_a_reader_that_leaves_gets_no_traceback(tmp_path):
+    """``wast3d info x.ply | head -1``: the pipe closes before info has written; nothing more is said."""
+    write_ply(tmp_path / "s.ply", random_scene(50, seed=6))
+    r_fd, w_fd = os.pipe()
+    os.close(r_fd)
+    p = subprocess.run([sys.executable, "-m", "wast3d", "info", str(tmp_path / "s.ply")], stdout=w_fd,
+                       stderr=subprocess.PIPE, text=True)
+    os.close(w_fd)
+    assert p.returncode == 0 and "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr, p.stderr

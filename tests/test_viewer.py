@@ -182,3 +182,56 @@ def test_viewer_page_shows_what_the_renderer_shows(tmp_path):
     err_pale = np.abs(page[lower].astype(float) - pale[lower]).mean()
     assert err < 4.0 and err_drawn.max() < 6.0, (err, err_drawn, tmp_path / "viewer_vs_render.png")
     assert err_pale > 4 * err, (err_pale, err)
+
+
+def test_the_viewer_answers_only_its_own_host_and_origin(tmp_path):
+    """A page of another site (Origin) or one that rebinds its name to this machine (Host) gets 403 and no
+    Gaussian; the page's own origin gets both."""
+    import http.client
+
+    import viser
+    import websockets
+
+    from wast3d.ply import write_ply
+    from wast3d.viewer import allowed_hosts, refusal, serve
+
+    write_ply(tmp_path / "s.ply", random_scene(200, seed=1))
+    server = serve([tmp_path / "s.ply"], "127.0.0.1", 0, 1000)
+    port = server.get_port()
+    try:
+        def status(host):
+            c = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+            c.request("GET", "/", headers={"Host": host})
+            return c.getresponse().status
+
+        assert status(f"localhost:{port}") == 200 and status(f"127.0.0.1:{port}") == 200
+        assert status("evil.example") == 403 and status(f"evil.example:{port}") == 403
+
+        async def first_message(origin):
+            async with websockets.connect(f"ws://127.0.0.1:{port}", origin=origin, subprotocols=[f"viser-v{viser.__version__}"],
+                                          open_timeout=10) as ws:
+                return await asyncio.wait_for(ws.recv(), 10)
+
+        assert len(asyncio.run(first_message(f"http://localhost:{port}"))) > 0
+        with pytest.raises(websockets.exceptions.InvalidStatus, match="403"):
+            asyncio.run(first_message("http://evil.example"))
+    finally:
+        server.stop()
+    # opened to the network: any name, but a page only to its own origin
+    assert refusal({"Host": "lab-pc:8080", "Origin": "http://lab-pc:8080"}, allowed_hosts("0.0.0.0")) is None
+    assert refusal({"Host": "lab-pc:8080", "Origin": "http://evil.example"}, allowed_hosts("0.0.0.0")) is not None
+    assert refusal({"Host": "[::1]:8080"}, allowed_hosts("127.0.0.1")) is None
+    assert refusal({}, allowed_hosts("127.0.0.1")) == "no Host header"
+
+
+@pytest.mark.parametrize("args, message", [(["--port", "99999"], "--port 99999"), (["--port", "-1"], "--port -1"),
+                                           (["--host", "256.1.1.1"], "not an IP address"),
+                                           (["--max-gaussians", "-5"], "--max-gaussians -5"),
+                                           (["--host", "192.0.2.1"], "cannot listen on 192.0.2.1")])
+def test_viewer_arguments_are_checked_before_it_starts(tmp_path, args, message):
+    from wast3d.ply import write_ply
+
+    write_ply(tmp_path / "s.ply", random_scene(50, seed=1))
+    r = subprocess.run([sys.executable, "-m", "wast3d", "view", str(tmp_path / "s.ply"), *args], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
