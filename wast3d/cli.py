@@ -50,13 +50,13 @@ def output_file(path: Path, *inputs: Path) -> Path:
 
 
 def not_an_input(out: Path, *inputs: Path) -> None:
-    """A ValueError when ``out`` (a file or a folder to write) is one of ``inputs`` or, for an input
-    folder, lies inside it, links resolved: the command would overwrite what it reads."""
+    """A ValueError when ``out`` (a file or a folder to write) is one of ``inputs`` or, as a folder, holds
+    one, links resolved: the command would overwrite what it reads."""
     o = Path(out).resolve()
     for i in inputs:
         r = Path(i).resolve()
-        if o == r or (r.is_dir() and r in o.parents):
-            raise ValueError(f"{out}: is the input {i}{' or inside it' if r.is_dir() else ''}; the output must be "
+        if o == r or o in r.parents:
+            raise ValueError(f"{out}: {'is the input' if o == r else 'holds the input'} {i}; the output must be "
                              "another file (inputs are never changed)")
 
 
@@ -113,8 +113,10 @@ def cmd_info(sub):
 @command("view", "serve an interactive 3D view of PLY scenes in the browser (viser)")
 def cmd_view(sub):
     sub.add_argument("ply", type=Path, nargs="+", help="scenes, e.g. content, style and result (a dropdown switches)")
-    sub.add_argument("--host", default="127.0.0.1", help="0.0.0.0 to reach it from other machines")
-    sub.add_argument("--port", type=int, default=8080)
+    sub.add_argument("--host", default="127.0.0.1", help="the address to listen on: pages of this machine only by "
+                                                         "default; 0.0.0.0 opens it to the network (any page served "
+                                                         "from it, never another site's)")
+    sub.add_argument("--port", type=int, default=8080, help="0-65535 (0: any free port)")
     sub.add_argument("--max-gaussians", type=int, default=300_000, help="per scene, most opaque kept")
     drop_invalid_option(sub)
 
