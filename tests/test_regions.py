@@ -156,3 +156,33 @@ def test_two_styles_on_a_tiny_content_through_the_workflow(tiny_run, tmp_path):
     table = (r / "tables/regions.md").read_text()
     assert "| blob | mix | 0 | peb |" in table and "| blob | mix | 1 | grs |" in table
     yaml.safe_load((wd / "config/config.yaml").read_text())
+
+
+def test_a_label_header_claiming_more_labels_than_the_scene_is_refused_unread(tmp_path):
+    import struct
+
+    h = "{'descr': '<i8', 'fortran_order': False, 'shape': (100000000000,), }"
+    h += " " * (118 - len(h)) + "\n"
+    (tmp_path / "big.npy").write_bytes(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(h)) + h.encode() + bytes(80))
+    with pytest.raises(ValueError, match=r"big\.npy: header: 100000000000 labels of type int64 for a scene of 10"):
+        read_labels(str(tmp_path / "big.npy"), 10)
+    np.save(tmp_path / "f.npy", np.zeros(10, np.float32))
+    with pytest.raises(ValueError, match="of type float32"):
+        read_labels(str(tmp_path / "f.npy"), 10)
+
+
+def test_a_regions_file_names_its_labels_beside_itself_and_takes_no_yes_no(tmp_path):
+    from wast3d.quickstart import regions_file
+
+    (tmp_path / "segs").mkdir()
+    f = tmp_path / "segs" / "regions.yaml"
+    f.write_text("- {style: 0, labels: {path: seg.npy, take: [1]}}\n- {style: 1, rest: true}\n")
+    entries = regions_file(f, ["a", "b"], [tmp_path / "a.ply", tmp_path / "b.ply"])
+    assert entries[0]["labels"]["path"] == str(tmp_path / "segs" / "seg.npy") and entries[0]["style"] == "a"
+    f.write_text("- {style: true, rest: true}\n- {style: 1, rest: true}\n")
+    with pytest.raises(ValueError, match="yes/no"):
+        regions_file(f, ["a", "b"], [tmp_path / "a.ply", tmp_path / "b.ply"])
+    with pytest.raises(ValueError, match="offset: a finite number"):
+        Region.parse({"style": "a", "half_space": {"normal": [0, 0, 1], "offset": "abc"}}, "r")
+    with pytest.raises(ValueError, match="3 finite numbers"):
+        Region.parse({"style": "a", "box": {"min": [False, 0, 0], "max": [True, 1, 1]}}, "r")
