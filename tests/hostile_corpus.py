@@ -309,7 +309,6 @@ def cases() -> list[Case]:
         Case("info -- -n.ply", ("info", "--", "{d}/inp/-n.ply"), True),
         Case("info --drop-invalid nan.ply", ("info", "{d}/inp/nan.ply", "--drop-invalid"), True),
         Case("export --drop-invalid nan.ply", ("export", "{d}/inp/nan.ply", "{d}/out/dropped.spz", "--drop-invalid"), True),
-        Case("export zero.ply", ("export", "{d}/inp/zero.ply", "{d}/out/zero.spz"), False, "no Gaussians"),
         Case("strip", ("strip", "{d}/out/strip.png", "A={d}/inp/ok.png", "B={d}/inp/grey_alpha.png"), True),
         Case("strip onto its input", ("strip", "{d}/inp/ok.png", "A={d}/inp/ok.png"), False, "is the input"),
         Case("strip corrupt picture", ("strip", "{d}/out/s.png", "A={d}/inp/corrupt.png"), False, "corrupt.png"),
