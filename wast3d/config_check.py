@@ -12,6 +12,7 @@ validator, its error message printing the instance) walks every copy. So the siz
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any, Iterable
@@ -117,38 +118,32 @@ MAX_DEPTH = 64  # a config this project runs nests 7 deep; YAML's parser recurse
 MAX_BYTES = 4 << 20  # a config or regions file of this project is a few kilobytes
 
 
-class _StrictLoader:
+@functools.lru_cache(maxsize=None)
+def _strict_loader():
     """yaml.SafeLoader that refuses a key given twice in one mapping (PyYAML keeps the last silently: a
     second ``experiments:`` block would replace the first)."""
+    import yaml
 
-    _cls = None
+    class Loader(yaml.SafeLoader):
+        pass
 
-    @classmethod
-    def get(cls):
-        if cls._cls is None:
-            import yaml
+    def mapping(loader, node, deep=False):
+        seen = {}
+        for k, _ in node.value:
+            if k.tag == "tag:yaml.org,2002:merge":
+                continue
+            name = loader.construct_object(k, deep=True)
+            try:
+                first = seen.setdefault(name, k.start_mark.line + 1)
+            except TypeError:  # an unhashable key: the constructor refuses it
+                continue
+            if first != k.start_mark.line + 1:
+                raise ConfigError(f"line {k.start_mark.line + 1}: key '{name}' is given twice in one mapping "
+                                  f"(first at line {first}); the second would silently replace the first")
+        return loader.construct_mapping(node, deep)
 
-            class Loader(yaml.SafeLoader):
-                pass
-
-            def mapping(loader, node, deep=False):
-                seen = {}
-                for k, _ in node.value:
-                    if k.tag == "tag:yaml.org,2002:merge":
-                        continue
-                    name = loader.construct_object(k, deep=True)
-                    try:
-                        first = seen.setdefault(name, k.start_mark.line + 1)
-                    except TypeError:  # an unhashable key: the constructor refuses it
-                        continue
-                    if first != k.start_mark.line + 1:
-                        raise ConfigError(f"line {k.start_mark.line + 1}: key '{name}' is given twice in one mapping "
-                                          f"(first at line {first}); the second would silently replace the first")
-                return loader.construct_mapping(node, deep)
-
-            Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
-            cls._cls = Loader
-        return cls._cls
+    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    return Loader
 
 
 def load_yaml(path: str | Path, what: str = "config", top: type | None = dict) -> Any:
@@ -179,7 +174,7 @@ def load_yaml(path: str | Path, what: str = "config", top: type | None = dict) -
                     raise ConfigError(f"{where}: line {ev.start_mark.line + 1}: nested more than {MAX_DEPTH} deep")
             elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
-        data = yaml.load(text, Loader=_StrictLoader.get())  # noqa: S506 - a SafeLoader
+        data = yaml.load(text, Loader=_strict_loader())  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as e:
         raise ConfigError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
     except ConfigError as e:
@@ -200,21 +195,27 @@ def check_yaml_file(path: str | Path) -> None:
 WILDCARD = r"\{\s*[.\w]+\s*(,[^}]*)?\}"  # what Snakemake reads as a wildcard in a path
 
 
+def check_no_wildcard(path: str | Path, where: str) -> None:
+    """A ConfigError (``where``: what names the path) when ``path`` holds what Snakemake reads as a
+    wildcard: it has no escape for one in an input's path, and would read another file."""
+    import re
+
+    if m := re.search(WILDCARD, str(path)):
+        raise ConfigError(f"{where}: '{m.group()}' in {path} is a wildcard to Snakemake, which would read another "
+                          "file; rename it (or link it under another name)")
+
+
 def check_scene_paths(scenes: dict, used: list[str], files: list[str], results: str = "results") -> None:
     """Each used scene's ``path`` (relative to the working folder): no Snakemake wildcard in it, present
     unless a rule writes it (a path under ``results``), and never inside the scene's own results
     (``results/scenes/NAME/``, which its import removes before it reads)."""
-    import re
-
     out = Path(results).resolve()
     for name in used:
         s = scenes[name]
         if not isinstance(s, dict) or "path" not in s or s.get("source") not in ("ply", "images"):
             continue
         p, where = Path(str(s["path"])), f"{source(('scenes', name, 'path'), files)}: scenes.{name}.path"
-        if m := re.search(WILDCARD, str(p)):
-            raise ConfigError(f"{where}: '{m.group()}' in {p} is a wildcard to Snakemake, which would read another "
-                              "file; rename it (or link it under another name)")
+        check_no_wildcard(p, where)
         r = p.resolve()
         own = out / "scenes" / name
         if r == own or own in r.parents:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .cameras import Camera, camera_from_blender, camera_to_blender
-from .io_utils import atomic_path
+from .io_utils import atomic_path, read_image
 
 log = logging.getLogger(__name__)
 
@@ -64,24 +64,11 @@ def _resolve_image(root: Path, file_path: str) -> Path:
 
 def load_image(path: Path, background: tuple[float, float, float]) -> tuple[torch.Tensor, torch.Tensor]:
     """Read an image -> (rgb composited on background [H, W, 3], alpha [H, W]), float32 in [0, 1].
-    Grey, grey + alpha, RGB and RGBA are read; anything else is a DatasetError naming the file."""
-    if not path.is_file():
-        raise DatasetError(f"{path}: image file not found" if not path.exists() else f"{path}: not an image file")
-    try:
-        a = iio.imread(path)
-    except Exception as e:
-        raise DatasetError(f"{path}: cannot read image ({e})") from None
-    a = np.asarray(a)
-    if a.dtype.kind not in "uif" or a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[-1] not in (1, 2, 3, 4)) \
-            or min(a.shape[:2]) < 1:
-        raise DatasetError(f"{path}: an image of shape {a.shape} and type {a.dtype}; expected grey, grey + alpha, RGB "
-                           "or RGBA")
+    Grey, grey + alpha, RGB and RGBA are read (:func:`~wast3d.io_utils.read_image`); anything else is a
+    DatasetError naming the file."""
+    a = read_image(path, DatasetError)
     scale = 65535.0 if a.dtype == np.uint16 else 255.0 if a.dtype == np.uint8 else 1.0
     a = a.astype(np.float32) / scale
-    if a.ndim == 2:
-        a = a[..., None]
-    if a.shape[-1] in (1, 2):  # grey (+ alpha): the grey on three channels
-        a = np.concatenate([np.repeat(a[..., :1], 3, axis=-1), a[..., 1:]], axis=-1)
     rgb = a[..., :3]
     alpha = a[..., 3] if a.shape[-1] == 4 else np.ones(a.shape[:2], np.float32)
     bg = np.asarray(background, np.float32)

@@ -11,7 +11,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from .io_utils import atomic_path
+from .io_utils import atomic_path, read_image
 
 log = logging.getLogger(__name__)
 
@@ -239,29 +239,13 @@ MAX_PIXELS = 1 << 26  # a picture a figure reads: 64 megapixels at most (a rende
 
 def read_picture(path: str | Path) -> np.ndarray:
     """A picture a figure shows -> [H, W, 3] uint8 (grey and alpha dropped to RGB); a ValueError naming the
-    file when it is missing, not a file, no image, or beyond MAX_PIXELS."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{p}: picture not found") if not p.exists() else ValueError(f"{p}: not a picture file")
-    try:
-        props = iio.improps(p)
-        if int(np.prod(props.shape[:2])) > MAX_PIXELS:
-            raise ValueError(f"{p}: {props.shape[1]}x{props.shape[0]} pixels; a figure reads at most {MAX_PIXELS >> 20} "
-                             "megapixels")
-        im = np.asarray(iio.imread(p))
-    except ValueError:
-        raise
-    except Exception as e:  # imageio raises many types for what is no image
-        raise ValueError(f"{p}: not a picture imageio can read ({type(e).__name__}: {(str(e).splitlines() or [''])[0][:120]})") from None
-    if im.ndim == 2:
-        im = im[..., None]
-    if im.ndim != 3 or im.shape[-1] not in (1, 2, 3, 4):
-        raise ValueError(f"{p}: a picture of shape {im.shape}; expected grey, grey + alpha, RGB or RGBA")
+    file when it is missing, not a file, no image, or beyond MAX_PIXELS (:func:`~wast3d.io_utils.read_image`)."""
+    im = read_image(path, ValueError, MAX_PIXELS)
     if im.dtype.kind == "f":  # values in [0, 1]
         im = (np.nan_to_num(im.astype(np.float64)).clip(0, 1) * 255).round().astype(np.uint8)
     elif im.dtype != np.uint8:  # 16-bit and other integer pictures, by their range
         im = (im.astype(np.float64) * 255 / max(np.iinfo(im.dtype).max, 1)).round().clip(0, 255).astype(np.uint8)
-    return np.repeat(im[..., :1], 3, -1) if im.shape[-1] < 3 else im[..., :3]
+    return im[..., :3]
 
 
 def strip(tiles: list[tuple[str, str | Path]], out: str | Path, tile: int = 320) -> None:

@@ -44,6 +44,31 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             tmp.unlink()
 
 
+def read_image(path: str | os.PathLike, error: type[Exception] = ValueError, max_pixels: int | None = None) -> np.ndarray:
+    """An image file -> [H, W, 3] (RGB) or [H, W, 4] (RGBA) array of its own type (uint8, uint16 or float),
+    grey spread over the three colours. ``error`` names the file when it is missing, not a file, no image
+    imageio reads, over ``max_pixels`` or not grey, grey + alpha, RGB or RGBA."""
+    import imageio.v3 as iio
+
+    p = Path(path)
+    if not p.is_file():
+        raise error(f"{p}: image file not found" if not p.exists() else f"{p}: not an image file")
+    try:
+        shape = iio.improps(p).shape if max_pixels is not None else None
+        a = np.asarray(iio.imread(p)) if shape is None or int(np.prod(shape[:2])) <= max_pixels else None
+    except Exception as e:  # imageio raises many types for what is no image
+        raise error(f"{p}: cannot read image ({type(e).__name__}: {(str(e).splitlines() or [''])[0][:120]})") from None
+    if a is None:
+        raise error(f"{p}: {shape[1]}x{shape[0]} pixels; at most {max_pixels >> 20} megapixels are read")
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.dtype.kind not in "uif" or a.ndim != 3 or a.shape[-1] not in (1, 2, 3, 4) or min(a.shape[:2]) < 1:
+        raise error(f"{p}: an image of shape {a.shape} and type {a.dtype}; expected grey, grey + alpha, RGB or RGBA")
+    if a.shape[-1] in (1, 2):  # grey (+ alpha): the grey on three channels
+        a = np.concatenate([np.repeat(a[..., :1], 3, axis=-1), a[..., 1:]], axis=-1)
+    return a
+
+
 def memory_available() -> int | None:
     """Bytes of memory this machine can still give (psutil's ``available``), or None where unknown."""
     try:

@@ -309,7 +309,7 @@ def inside_results(path: Path, out: Path) -> bool:
 
 def check_path_text(path: Path, what: str) -> None:
     """A ValueError for a path the workflow cannot carry: one that is not UTF-8 (Snakemake reads its
-    config as text), or that holds a line break."""
+    config as text), that holds a line break, or a Snakemake wildcard."""
     text = str(path)
     try:
         text.encode("utf-8")
@@ -317,13 +317,9 @@ def check_path_text(path: Path, what: str) -> None:
         raise ValueError(f"{ascii(text)}: {what}: the name is not UTF-8 text; rename it") from None
     if "\n" in text or "\r" in text:
         raise ValueError(f"{ascii(text)}: {what}: the name holds a line break; rename it")
-    from .config_check import WILDCARD
+    from .config_check import check_no_wildcard
 
-    if m := re.search(WILDCARD, text):  # Snakemake has no escape for it in an input's path
-        raise ValueError(f"{text}: {what}: '{m.group()}' in the name is a wildcard to Snakemake, which would read "
-                         "another file; rename it (or link it under another name)")
-
-
+    check_no_wildcard(text, what)
 
 
 def configfiles(snakemake_args: list[str]) -> list[str]:
