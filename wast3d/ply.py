@@ -180,27 +180,27 @@ def _read_vertex(path: Path):
         raise FileNotFoundError(f"{path}: file not found")
     if not path.is_file():
         raise PlyError(f"{path}: not a file")
-    _header_length(path)
+    head = _header_length(path)
     try:
         ply = PlyData.read(str(path))
     except Exception as e:  # plyfile raises several types for truncated/corrupt data
         raise PlyError(f"{path}: corrupt or truncated PLY ({type(e).__name__}: {e})") from None
     if "vertex" not in ply:
         raise PlyError(f"{path}: no 'vertex' element (elements: {[el.name for el in ply.elements]})")
-    _check_length(path, ply)
+    _check_length(path, ply, head)
     v = ply["vertex"]
     return v, [p.name for p in v.properties], ply
 
 
-def _check_length(path: Path, ply) -> None:
+def _check_length(path: Path, ply, head: int) -> None:
     """A binary PLY's data must be exactly what its header's counts say: more bytes are rows the header
     does not count (a reader would drop them without a word), fewer a truncated file. An element with
-    list properties (a mesh's faces) counts each row's lists as read."""
+    list properties (a mesh's faces) counts each row's lists as read. ``head``: the header's bytes."""
     from plyfile import PlyListProperty
 
     if ply.text:
         return
-    data = path.stat().st_size - _header_length(path)
+    data = path.stat().st_size - head
     expect = 0
     for el in ply.elements:
         lists = [p for p in el.properties if isinstance(p, PlyListProperty)]
